@@ -1,0 +1,66 @@
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from trakdis.utils.logger import CSVLogger, latest_run_dir, make_run_dir
+from trakdis.utils.config import save_config
+from dataclasses import dataclass
+
+
+@dataclass
+class C:
+    a: int = 1
+
+
+def test_rows_merge_and_columns(tmp_path):
+    log = CSVLogger(tmp_path / "log.csv")
+    log.log(0, {"train/loss_nll": torch.tensor(1.5)})
+    log.log(0, {"eval/normalized_performance": np.float32(0.25)})
+    log.log(10, {"train/loss_nll": 0.5})
+    log.close()
+    frame = pd.read_csv(tmp_path / "log.csv")
+    assert list(frame.columns) == ["step", "train/loss_nll", "eval/normalized_performance"]
+    assert frame["step"].tolist() == [0, 10]
+    assert frame["eval/normalized_performance"].iloc[0] == pytest.approx(0.25)
+    assert np.isnan(frame["eval/normalized_performance"].iloc[1])
+    assert log.last("train/loss_nll") == 0.5
+
+
+def test_resume_truncates_and_appends(tmp_path):
+    p = tmp_path / "log.csv"
+    log = CSVLogger(p)
+    for s in range(5):
+        log.log(s, {"train/x": s})
+    log.close()
+    with pytest.raises(FileExistsError):
+        CSVLogger(p)
+    log = CSVLogger(p, resume=True, truncate_after=2)  # checkpoint was at step 2
+    log.log(3, {"train/x": 30, "eval/y": 1})
+    log.close()
+    frame = pd.read_csv(p)
+    assert frame["step"].tolist() == [0, 1, 2, 3]
+    assert frame["train/x"].tolist() == [0, 1, 2, 30]
+
+
+def test_non_scalar_metric_named(tmp_path):
+    log = CSVLogger(tmp_path / "log.csv")
+    with pytest.raises(ValueError, match="train/vec"):
+        log.log(0, {"train/vec": torch.ones(3)})
+
+
+def test_run_dirs(tmp_path):
+    run = make_run_dir("online_dt", name="a", root=tmp_path)
+    assert run == tmp_path / "online_dt" / "a" and run.is_dir()
+    save_config(C(), run / "config.json")
+    (run / "log.csv").write_text("step\n")
+    with pytest.raises(FileExistsError, match="--resume"):
+        make_run_dir("online_dt", name="a", root=tmp_path)
+    assert make_run_dir("online_dt", name="a", root=tmp_path, resume=True) == run
+    assert make_run_dir("online_dt", root=tmp_path, resume=True) == run
+    assert latest_run_dir(tmp_path, "online_dt") == run
+    with pytest.raises(FileNotFoundError, match="distill"):
+        make_run_dir("distill", root=tmp_path, resume=True)
+    auto = make_run_dir("online_dt", root=tmp_path)
+    auto2 = make_run_dir("online_dt", root=tmp_path)
+    assert auto != auto2 and auto.parent == run.parent

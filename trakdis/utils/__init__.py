@@ -1,0 +1,52 @@
+"""Recipe support: dataclass CLI configs, run directories, CSV logs, OpenCV plots, atomic
+checkpoints, videos and progress bars."""
+from .checkpoint import (
+    CheckpointError,
+    atomic_write_bytes,
+    capture_state,
+    load_checkpoint,
+    restore_state,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from .config import (
+    apply_overrides,
+    build_parser,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    parse_config,
+    save_config,
+)
+from .logger import CSVLogger, latest_run_dir, make_run_dir
+from .plot import plot_csv, plot_curves
+from .progress import progress
+from .video import VideoWriter, side_by_side, write_video
+
+__all__ = [
+    "CheckpointError",
+    "atomic_write_bytes",
+    "capture_state",
+    "load_checkpoint",
+    "restore_state",
+    "rng_state",
+    "save_checkpoint",
+    "set_rng_state",
+    "apply_overrides",
+    "build_parser",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+    "parse_config",
+    "save_config",
+    "CSVLogger",
+    "latest_run_dir",
+    "make_run_dir",
+    "plot_csv",
+    "plot_curves",
+    "progress",
+    "VideoWriter",
+    "side_by_side",
+    "write_video",
+]

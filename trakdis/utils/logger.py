@@ -1,0 +1,170 @@
+"""Run directories and a one-table CSV logger.
+
+``runs/<recipe>/<name>/`` holds ``config.json``, ``log.csv``, ``curves.png`` and
+``checkpoint.pt``. TorchRL's ``torchrl.record.loggers.CSVLogger`` writes one file per scalar
+(``scalars/<name>.csv``) and has no notion of resuming, so this module keeps one wide table
+instead: one row per logged step, one stable column per metric (``train/loss_nll``,
+``eval/normalized_performance``), written with pandas and appended to on resume.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import numbers
+from pathlib import Path
+from typing import Any, Mapping
+
+import pandas as pd
+
+from .checkpoint import atomic_write_bytes
+
+__all__ = ["make_run_dir", "latest_run_dir", "CSVLogger"]
+
+
+def latest_run_dir(root: str | Path, recipe: str) -> Path | None:
+    """The most recently modified run directory of ``recipe`` under ``root`` (or ``None``)."""
+    base = Path(root) / recipe
+    if not base.is_dir():
+        return None
+    runs = [p for p in base.iterdir() if p.is_dir() and (p / "config.json").exists()]
+    return max(runs, key=lambda p: p.stat().st_mtime) if runs else None
+
+
+def make_run_dir(
+    recipe: str,
+    *,
+    name: str | None = None,
+    root: str | Path = "runs",
+    resume: bool = False,
+) -> Path:
+    """Create (or, with ``resume``, find) ``<root>/<recipe>/<name>``.
+
+    ``name`` defaults to a UTC timestamp; with ``resume`` and no name, the latest run of the
+    recipe is resumed. A fresh run refuses to reuse a directory that already holds a
+    checkpoint or a log, so nothing is overwritten by accident.
+    """
+    root = Path(root)
+    if resume:
+        if name is None:
+            run = latest_run_dir(root, recipe)
+            if run is None:
+                raise FileNotFoundError(f"--resume: no earlier run of {recipe!r} under {root / recipe}")
+            return run
+        run = root / recipe / name
+        if not run.is_dir():
+            raise FileNotFoundError(f"--resume: run directory {run} does not exist")
+        return run
+    if name is None:
+        name = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S")
+        run = root / recipe / name
+        i = 1
+        while run.exists():
+            run = root / recipe / f"{name}-{i}"
+            i += 1
+    else:
+        run = root / recipe / name
+        if any((run / f).exists() for f in ("checkpoint.pt", "log.csv")):
+            raise FileExistsError(
+                f"run directory {run} already holds a run; pass --resume to continue it or "
+                "choose another --name"
+            )
+    run.mkdir(parents=True, exist_ok=True)
+    return run
+
+
+def _scalar(value: Any, key: str) -> float | int | str:
+    if hasattr(value, "item") and callable(value.item):
+        try:
+            value = value.item()
+        except (ValueError, RuntimeError) as err:
+            raise ValueError(f"metric {key!r} is not a scalar (shape {tuple(getattr(value, 'shape', ()))})") from err
+    if isinstance(value, bool):
+        return int(value)
+    if isinstance(value, numbers.Number) or isinstance(value, str):
+        return value
+    raise TypeError(f"metric {key!r} has unsupported type {type(value).__name__}")
+
+
+class CSVLogger:
+    """One-table CSV log: ``log(step, {"train/loss_nll": 0.3, ...})`` adds/merges one row.
+
+    Rows with the same ``step`` are merged (train and eval metrics of one step share a row).
+    The file is rewritten atomically on :meth:`flush` (every ``flush_every`` rows and at
+    :meth:`close`). With ``resume=True`` the existing file is read back; pass
+    ``truncate_after=step`` to drop rows logged after the checkpoint being resumed from, so a
+    killed run neither loses nor duplicates rows.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        resume: bool = False,
+        truncate_after: int | None = None,
+        flush_every: int = 1,
+    ) -> None:
+        self.path = Path(path)
+        self.flush_every = max(1, int(flush_every))
+        self._rows: dict[int, dict[str, Any]] = {}
+        self._columns: list[str] = ["step"]
+        self._pending = 0
+        if resume and self.path.exists():
+            try:
+                frame = pd.read_csv(self.path)
+            except pd.errors.EmptyDataError:
+                frame = pd.DataFrame(columns=["step"])
+            if "step" not in frame.columns:
+                raise ValueError(f"{self.path} has no 'step' column; columns are {list(frame.columns)}")
+            for col in frame.columns:
+                if col not in self._columns:
+                    self._columns.append(col)
+            for record in frame.to_dict("records"):
+                step = int(record["step"])
+                if truncate_after is not None and step > truncate_after:
+                    continue
+                self._rows[step] = {k: v for k, v in record.items() if not _isnan(v)}
+            self.flush()
+        elif not resume and self.path.exists():
+            raise FileExistsError(f"{self.path} exists; pass resume=True to append to it")
+
+    def log(self, step: int, metrics: Mapping[str, Any] | None = None, **kw: Any) -> None:
+        metrics = {**(metrics or {}), **kw}
+        step = int(step)
+        row = self._rows.setdefault(step, {"step": step})
+        for key, value in metrics.items():
+            if key == "step":
+                continue
+            row[key] = _scalar(value, key)
+            if key not in self._columns:
+                self._columns.append(key)
+        self._pending += 1
+        if self._pending >= self.flush_every:
+            self.flush()
+
+    def frame(self) -> pd.DataFrame:
+        rows = [self._rows[s] for s in sorted(self._rows)]
+        return pd.DataFrame(rows, columns=self._columns)
+
+    def last(self, key: str) -> Any:
+        """The most recent logged value of ``key`` (``None`` if never logged)."""
+        for step in sorted(self._rows, reverse=True):
+            if key in self._rows[step]:
+                return self._rows[step][key]
+        return None
+
+    def flush(self) -> None:
+        atomic_write_bytes(self.path, self.frame().to_csv(index=False).encode())
+        self._pending = 0
+
+    def close(self) -> None:
+        self.flush()
+
+    def __enter__(self) -> "CSVLogger":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _isnan(value: Any) -> bool:
+    return isinstance(value, float) and math.isnan(value)
