@@ -19,9 +19,11 @@ from .config import (
     parse_config,
     save_config,
 )
+from .evaluation import EpisodeResults, run_episodes, summarize, write_summary_table
 from .logger import CSVLogger, latest_run_dir, make_run_dir
 from .plot import plot_csv, plot_curves
 from .progress import progress
+from .run import Run, RunConfig, seed_everything
 from .video import VideoWriter, side_by_side, write_video
 
 __all__ = [
@@ -46,6 +48,13 @@ __all__ = [
     "plot_csv",
     "plot_curves",
     "progress",
+    "Run",
+    "RunConfig",
+    "seed_everything",
+    "EpisodeResults",
+    "run_episodes",
+    "summarize",
+    "write_summary_table",
     "VideoWriter",
     "side_by_side",
     "write_video",

@@ -1,0 +1,97 @@
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import EnvBase, SerialEnv, StepCounter, TransformedEnv
+
+from trakdis.utils.evaluation import run_episodes, split_episodes, summarize, write_summary_table
+
+
+class Walk(EnvBase):
+    """1-d walk: state += action; normalized_performance = state (so the final value is the sum of actions)."""
+
+    def __init__(self, unstable_at=None):
+        super().__init__(batch_size=())
+        self.unstable_at = unstable_at
+        self.observation_spec = Composite(
+            state=Unbounded(shape=(1,)), normalized_performance=Unbounded(shape=(1,)),
+            sim_unstable=Unbounded(shape=(1,), dtype=torch.bool),
+        )
+        self.action_spec = Bounded(-1, 1, shape=(1,))
+        self.reward_spec = Unbounded(shape=(1,))
+
+    def _reset(self, td):
+        self._t = 0
+        z = torch.zeros(1)
+        return TensorDict(state=z, normalized_performance=z.clone(), sim_unstable=torch.zeros(1, dtype=torch.bool),
+                          done=torch.zeros(1, dtype=torch.bool), terminated=torch.zeros(1, dtype=torch.bool))
+
+    def _step(self, td):
+        self._t += 1
+        s = td["state"] + td["action"]
+        bad = self.unstable_at is not None and self._t >= self.unstable_at
+        return TensorDict(state=s, normalized_performance=s.clone(), reward=-s.abs(),
+                          sim_unstable=torch.tensor([bad]), done=torch.tensor([bad]), terminated=torch.zeros(1, dtype=torch.bool))
+
+    def _set_seed(self, seed):
+        return seed
+
+
+def make(h=5, **kw):
+    return TransformedEnv(Walk(**kw), StepCounter(max_steps=h))
+
+
+policy = TensorDictModule(lambda s: torch.full_like(s, 0.5), in_keys=["state"], out_keys=["action"])
+
+
+def test_run_episodes_batched_and_truncated_count():
+    env = SerialEnv(2, make)
+    res = run_episodes(env, policy, 3, max_steps=5, keep_episodes=True, desc=None)
+    env.close()
+    assert res.final_performance.tolist() == [2.5] * 3  # 5 steps of +0.5
+    assert res.lengths.tolist() == [5] * 3 and not res.unstable.any()
+    assert res.returns == pytest.approx([-(0.5 + 1 + 1.5 + 2 + 2.5)] * 3)
+    assert len(res.episodes) == 3 and res.episodes[0].shape == (5,)
+
+
+def test_early_end_uses_first_done():
+    res = run_episodes(make(h=10, unstable_at=3), policy, 2, max_steps=10, desc=None)
+    assert res.lengths.tolist() == [3, 3] and res.unstable.all()
+    assert res.final_performance.tolist() == [1.5, 1.5]
+
+
+def test_missing_key_is_named():
+    env = TransformedEnv(Walk(), StepCounter(max_steps=3))
+    env.base_env.observation_spec = Composite(state=Unbounded(shape=(1,)))
+
+    def bad_reset(td):
+        return TensorDict(state=torch.zeros(1), done=torch.zeros(1, dtype=torch.bool), terminated=torch.zeros(1, dtype=torch.bool))
+
+    def bad_step(td):
+        return TensorDict(state=td["state"], reward=torch.zeros(1), done=torch.zeros(1, dtype=torch.bool), terminated=torch.zeros(1, dtype=torch.bool))
+
+    env.base_env._reset, env.base_env._step = bad_reset, bad_step
+    with pytest.raises(KeyError, match="normalized_performance"):
+        run_episodes(env, policy, 1, max_steps=3, desc=None)
+
+
+def test_split_episodes_drops_tail():
+    done = torch.tensor([[False, True, False, False], [False, False, False, True]])
+    td = TensorDict({"x": torch.arange(8).reshape(2, 4), ("next", "done"): done.unsqueeze(-1)}, batch_size=[2, 4])
+    eps = split_episodes(td)
+    assert [e.shape[0] for e in eps] == [2, 4]
+
+
+def test_summary_and_tables(tmp_path):
+    s = summarize([0.0, 1.0, 2.0, 3.0])
+    assert s["mean"] == 1.5 and s["p50"] == 1.5 and s["p25"] == 0.75 and s["std"] == pytest.approx(np.std([0, 1, 2, 3]))
+    with pytest.raises(ValueError):
+        summarize([])
+    frame = write_summary_table([{"task": "ClothFold", "policy": "expert", **s}], tmp_path / "t.csv", tmp_path / "t.md")
+    assert list(frame.columns[:3]) == ["task", "policy", "n"]
+    md = (tmp_path / "t.md").read_text().splitlines()
+    assert md[0].startswith("| task | policy | n | mean") and "| ClothFold | expert | 4 | 1.500 |" in md[2]
+    assert pd.read_csv(tmp_path / "t.csv")["mean"].iloc[0] == 1.5

@@ -1,0 +1,50 @@
+import json
+from dataclasses import dataclass
+
+import pandas as pd
+import pytest
+import torch
+
+from trakdis.utils.run import Run, RunConfig
+
+
+@dataclass
+class Cfg(RunConfig):
+    steps: int = 6
+    """number of updates"""
+    lr: float = 0.1
+
+
+def train(argv):
+    run = Run.start("toy", Cfg, argv, presets={"slow": {"lr": 0.01}})
+    model = torch.nn.Linear(1, 1)
+    opt = torch.optim.SGD(model.parameters(), lr=run.cfg.lr)
+    state = run.resume_state()
+    step = 0
+    if state is not None:
+        model.load_state_dict(state["model"]); opt.load_state_dict(state["optim"]); step = state["step"]
+    while step < run.cfg.steps:
+        step += 1
+        run.log(step, {"train/loss": float(step)})
+        if step % 2 == 0 or step == run.cfg.steps:
+            run.save_checkpoint({"model": model.state_dict(), "optim": opt.state_dict()}, step=step)
+        if run.should_stop(step):
+            return run, step
+    run.finish()
+    return run, step
+
+
+def test_fresh_stop_resume(tmp_path):
+    root = str(tmp_path)
+    run, step = train(["--root", root, "--name", "a", "--stop-after", "3", "--preset", "slow", "--no-progress"])
+    assert step == 3 and run.cfg.lr == 0.01
+    saved = json.loads((run.dir / "config.json").read_text())
+    assert saved["lr"] == 0.01 and saved["name"] == "a" and saved["resume"] is False
+    # Step 3 was logged after the step-2 checkpoint: it is logged again on resume, not duplicated.
+    run2, step2 = train(["--root", root, "--resume", "--stop-after", "100", "--steps", "8"])
+    assert run2.dir == run.dir and step2 == 8 and run2.cfg.lr == 0.01 and run2.cfg.steps == 8
+    frame = pd.read_csv(run.dir / "log.csv")
+    assert frame["step"].tolist() == list(range(1, 9))
+    assert (run.dir / "curves.png").exists()
+    with pytest.raises(FileExistsError):
+        train(["--root", root, "--name", "a"])

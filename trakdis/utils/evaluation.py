@@ -1,0 +1,164 @@
+"""Episode rollouts and their summary, shared by the recipes (teacher/student evaluation, online
+data collection, ``evaluate.py``).
+
+:func:`run_episodes` rolls a policy out in a batched TorchRL environment (``SerialEnv`` /
+``ParallelEnv`` of ``N`` tasks, or a single env) with ``env.rollout`` until ``num_episodes``
+full episodes were played, and returns per-episode results: the normalized performance at the
+episode's end (the paper's metric), the return, the length, and optionally the rollout
+TensorDicts themselves (to insert into a replay buffer or to render videos).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from .checkpoint import atomic_write_bytes
+from .progress import progress
+
+__all__ = ["EpisodeResults", "run_episodes", "split_episodes", "summarize", "write_summary_table"]
+
+
+@dataclass
+class EpisodeResults:
+    final_performance: np.ndarray
+    """normalized performance at each episode's last step, shape [num_episodes]"""
+    returns: np.ndarray
+    lengths: np.ndarray
+    unstable: np.ndarray
+    """True where the physics blew up and the episode was truncated early"""
+    episodes: list = field(default_factory=list)
+    """one TensorDict of shape [length] per episode (only with keep_episodes=True)"""
+
+    def summary(self) -> dict[str, float]:
+        return summarize(self.final_performance)
+
+
+def summarize(values: Sequence[float] | np.ndarray) -> dict[str, float]:
+    """``n``, ``mean``, ``std`` (population, as the paper's mean +- std), ``p25``, ``p50``, ``p75``, ``min``, ``max``."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if v.size == 0:
+        raise ValueError("summarize: no values")
+    return {
+        "n": int(v.size),
+        "mean": float(v.mean()),
+        "std": float(v.std()),
+        "p25": float(np.percentile(v, 25)),
+        "p50": float(np.percentile(v, 50)),
+        "p75": float(np.percentile(v, 75)),
+        "min": float(v.min()),
+        "max": float(v.max()),
+    }
+
+
+def _first_done(done: torch.Tensor) -> torch.Tensor:
+    """Index of the first True along the last dim (or last index if none), for ``done`` [..., T]."""
+    T = done.shape[-1]
+    idx = torch.arange(T, device=done.device).expand_as(done)
+    return torch.where(done, idx, torch.full_like(idx, T - 1)).min(-1).values
+
+
+def split_episodes(rollout: TensorDictBase) -> list[TensorDictBase]:
+    """Cut a ``[*B, T]`` rollout into the first complete episode of each batch entry.
+
+    ``env.rollout(..., break_when_any_done=False)`` resets finished sub-environments and keeps
+    stepping; everything after the first ``("next", "done")`` of an entry belongs to a later,
+    incomplete episode and is dropped.
+    """
+    if rollout.batch_dims == 1:
+        rollout = rollout.unsqueeze(0)
+    flat = rollout.reshape(-1, rollout.shape[-1])
+    done = flat.get(("next", "done")).reshape(flat.shape[0], flat.shape[-1])
+    ends = _first_done(done)
+    return [flat[i, : int(ends[i]) + 1] for i in range(flat.shape[0])]
+
+
+def run_episodes(
+    env,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    num_episodes: int,
+    *,
+    max_steps: int,
+    deterministic: bool = True,
+    keep_episodes: bool = False,
+    desc: str | None = "episodes",
+    on_episode: Callable[[TensorDictBase], Any] | None = None,
+) -> EpisodeResults:
+    """Play ``num_episodes`` episodes of ``policy`` in ``env`` (batched over ``env.batch_size``).
+
+    Each round is one ``env.rollout`` of ``max_steps`` steps (the horizon) with a fresh reset, so
+    a stateful policy (the DT acting wrapper) sees ``step_count == 0`` at every episode start.
+    ``deterministic`` evaluates the distribution's mean (``ExplorationType.DETERMINISTIC``);
+    otherwise actions are sampled. ``on_episode`` is called with each finished episode.
+    """
+    if num_episodes < 1:
+        raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
+    n_env = int(np.prod(tuple(env.batch_size))) if len(env.batch_size) else 1
+    rounds = math.ceil(num_episodes / n_env)
+    finals, returns, lengths, unstable, kept = [], [], [], [], []
+    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    bar = progress(total=num_episodes, desc=desc)
+    with torch.no_grad(), set_exploration_type(mode):
+        for _ in range(rounds):
+            rollout = env.rollout(max_steps, policy, break_when_any_done=False, auto_reset=True)
+            for ep in split_episodes(rollout):
+                if len(finals) >= num_episodes:
+                    break
+                nxt = ep.get("next")
+                if "normalized_performance" not in nxt.keys():
+                    raise KeyError(
+                        "run_episodes: the environment writes no ('next', 'normalized_performance'); "
+                        f"next keys are {sorted(map(str, nxt.keys()))}"
+                    )
+                finals.append(float(nxt.get("normalized_performance")[-1].reshape(-1)[0]))
+                returns.append(float(nxt.get("reward").sum()))
+                lengths.append(ep.shape[0])
+                unstable.append(bool(nxt.get("sim_unstable").any()) if "sim_unstable" in nxt.keys() else False)
+                if keep_episodes:
+                    kept.append(ep)
+                if on_episode is not None:
+                    on_episode(ep)
+                bar.update(1)
+    bar.close()
+    return EpisodeResults(
+        final_performance=np.asarray(finals),
+        returns=np.asarray(returns),
+        lengths=np.asarray(lengths),
+        unstable=np.asarray(unstable),
+        episodes=kept,
+    )
+
+
+def write_summary_table(
+    rows: Sequence[dict[str, Any]], csv_path: str | Path, md_path: str | Path | None = None, *,
+    columns: Sequence[str] = ("task", "policy", "n", "mean", "std", "p25", "p50", "p75"),
+) -> pd.DataFrame:
+    """Write summary rows as CSV and (optionally) as a Markdown table; returns the frame."""
+    frame = pd.DataFrame(list(rows))
+    cols = [c for c in columns if c in frame.columns] + [c for c in frame.columns if c not in columns]
+    frame = frame[cols]
+    atomic_write_bytes(csv_path, frame.to_csv(index=False).encode())
+    if md_path is not None:
+        atomic_write_bytes(md_path, (markdown_table(frame) + "\n").encode())
+    return frame
+
+
+def markdown_table(frame: pd.DataFrame) -> str:
+    """A GitHub Markdown table (no ``tabulate`` dependency, unlike ``DataFrame.to_markdown``)."""
+
+    def fmt(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:.3f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(map(str, frame.columns)) + " |", "|" + "---|" * len(frame.columns)]
+    for rec in frame.itertuples(index=False):
+        lines.append("| " + " | ".join(fmt(v) for v in rec) + " |")
+    return "\n".join(lines)

@@ -1,0 +1,162 @@
+"""The skeleton every recipe shares: parse the config, find/create the run directory, save
+``config.json``, seed, open the CSV log, checkpoint and resume, draw the curves at the end.
+
+A recipe looks like::
+
+    @dataclass
+    class MyConfig(RunConfig):
+        steps: int = 100
+        \"\"\"number of updates\"\"\"
+
+    run = Run.start("my_recipe", MyConfig, argv)
+    state = run.resume_state()            # None for a fresh run
+    ...
+    run.log(step, {"train/loss": 0.1})
+    run.save_checkpoint({...}, step=step)  # atomic, and the log is flushed with it
+    run.finish()                           # curves.png
+
+``--resume`` reloads ``config.json`` from the run directory and re-applies only the flags given
+on the command line, so ``--resume --name X`` continues run X with its own configuration;
+the CSV log is truncated to the checkpoint's step so that rows are neither lost nor duplicated.
+``--stop-after N`` makes the recipe stop (checkpoint written) once its main counter reaches N,
+which is how the tests simulate a killed run.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import random
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+import torch
+
+from .checkpoint import load_checkpoint, save_checkpoint
+from .config import apply_overrides, load_config, parse_config, save_config
+from .logger import CSVLogger, make_run_dir
+from .plot import plot_csv
+
+__all__ = ["RunConfig", "Run", "seed_everything"]
+
+
+@dataclass
+class RunConfig:
+    """Options shared by every recipe."""
+
+    name: Optional[str] = None
+    """run name; the run directory is <root>/<recipe>/<name> (default: a UTC timestamp)"""
+    root: str = "runs"
+    """directory holding all runs"""
+    resume: bool = False
+    """continue the run --name (or the latest run of this recipe) from its checkpoint"""
+    seed: int = 0
+    """seed of Python, NumPy, torch and the environments"""
+    device: str = "cpu"
+    """torch device of the models (environments stay on the CPU)"""
+    threads: int = 0
+    """torch CPU threads (0: leave torch's default)"""
+    stop_after: Optional[int] = None
+    """stop (checkpoint written) once the recipe's main counter reaches this value; for tests and
+    time-sliced runs, continue with --resume"""
+    progress: bool = True
+    """show tqdm progress bars"""
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+class Run:
+    """A recipe run: resolved config, run directory, CSV log and checkpoint."""
+
+    def __init__(self, recipe: str, cfg: Any, directory: Path, explicit: Mapping[str, Any]):
+        self.recipe = recipe
+        self.cfg = cfg
+        self.dir = Path(directory)
+        self.explicit = dict(explicit)
+        self.checkpoint_path = self.dir / "checkpoint.pt"
+        self.log_path = self.dir / "log.csv"
+        self._logger: CSVLogger | None = None
+        self._resume_state: dict[str, Any] | None = None
+        self.t0 = time.time()
+
+    # ------------------------------------------------------------------ start
+    @classmethod
+    def start(
+        cls,
+        recipe: str,
+        cfg_cls: type,
+        argv: Sequence[str] | None = None,
+        *,
+        presets: Mapping[str, Mapping[str, Any]] | None = None,
+        description: str | None = None,
+    ) -> "Run":
+        cfg, explicit = parse_config(cfg_cls, argv, presets=presets, description=description)
+        directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=cfg.resume)
+        saved = directory / "config.json"
+        if cfg.resume and saved.exists():
+            cfg = apply_overrides(load_config(cfg_cls, saved), explicit)
+        cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
+        save_config(cfg, saved)
+        run = cls(recipe, cfg, directory, explicit)
+        run.resuming = bool(explicit.get("resume", False))
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        if not cfg.progress:
+            os.environ["TRAKDIS_NO_PROGRESS"] = "1"
+        seed_everything(cfg.seed)
+        if run.resuming:
+            if run.checkpoint_path.exists():
+                run._resume_state = load_checkpoint(run.checkpoint_path, map_location="cpu")
+                run.print(f"resuming {directory} from step {run._resume_state.get('step', 0)}")
+            else:
+                run.print(f"--resume: {run.checkpoint_path} does not exist yet; starting {directory} afresh")
+        else:
+            run.print(f"run directory: {directory}")
+        return run
+
+    # ------------------------------------------------------------------ state
+    def resume_state(self) -> dict[str, Any] | None:
+        """The checkpoint dict being resumed from (``None`` for a fresh run)."""
+        return self._resume_state
+
+    @property
+    def logger(self) -> CSVLogger:
+        if self._logger is None:
+            # Rows logged after the checkpoint (or all rows, without a checkpoint) are dropped: the
+            # resumed run logs them again.
+            step = -1 if self._resume_state is None else int(self._resume_state.get("step", 0))
+            self._logger = CSVLogger(self.log_path, resume=self.log_path.exists(), truncate_after=step)
+        return self._logger
+
+    def log(self, step: int, metrics: Mapping[str, Any]) -> None:
+        self.logger.log(step, metrics)
+
+    def save_checkpoint(self, state: Mapping[str, Any], *, step: int) -> Path:
+        self.logger.flush()
+        return save_checkpoint(self.checkpoint_path, {**state, "step": int(step), "recipe": self.recipe,
+                                                     "config": dataclasses.asdict(self.cfg)})
+
+    def should_stop(self, counter: int) -> bool:
+        """True once ``counter`` reached ``--stop-after``."""
+        return self.cfg.stop_after is not None and counter >= self.cfg.stop_after
+
+    def print(self, *args: Any) -> None:
+        print(f"[{self.recipe} {time.time() - self.t0:7.1f}s]", *args, flush=True)
+
+    def finish(self, *, columns: Sequence[str] | None = None) -> Path | None:
+        """Flush the log and write ``curves.png`` (returns its path, or None without a log)."""
+        if self._logger is None and not self.log_path.exists():
+            return None
+        self.logger.close()
+        try:
+            return plot_csv(self.log_path, self.dir / "curves.png", columns=columns)
+        except Exception as err:  # a figure must never lose a finished run
+            print(f"warning: could not draw curves: {err}", file=sys.stderr)
+            return None
