@@ -1,0 +1,221 @@
+"""Policy files and acting environments shared by the recipes.
+
+A *policy file* (``policy.pt``, written by ``online_dt.py`` and ``distill.py``) is a checkpoint
+dict holding everything needed to act without the recipe's config:
+
+``kind`` (``"teacher"`` / ``"student"``), ``task``, ``horizon``, ``dt_config`` (a
+:class:`~trakdis.modules.DTConfig` dict), ``observation_key``, ``actor`` (state dict),
+``target_return`` and ``rtg_scale`` (acting return-to-go), ``env_kwargs`` and, for a student,
+``encoder`` (an encoder file's dict, see :func:`save_encoder`).
+
+:func:`load_policy` turns a policy file, or the string ``"expert"`` (the scripted expert), into
+a :class:`PolicyHandle` that builds its acting environment (batched over ``num_envs``, with the
+return-to-go countdown, the frozen encoder and optional state noise) and its acting module.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+
+__all__ = [
+    "make_batched_env",
+    "make_acting_env",
+    "PolicyHandle",
+    "load_policy",
+    "save_policy",
+    "save_encoder",
+    "load_encoder",
+    "NormalizedEncoder",
+]
+
+
+# --------------------------------------------------------------------------- environments
+def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, seed: int | None = None,
+                     split: str = "train", from_pixels: bool = False, image_size: int = 32,
+                     env_kwargs: Mapping[str, Any] | None = None):
+    """``SerialEnv``/``ParallelEnv`` of ``num_envs`` :func:`trakdis.envs.make_env` instances (batch ``[num_envs]``)."""
+    from torchrl.envs import ParallelEnv, SerialEnv
+
+    from trakdis.envs import make_env
+
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    factory = functools.partial(make_env, task, from_pixels=from_pixels, image_size=image_size, split=split,
+                                **dict(env_kwargs or {}))
+    cls = ParallelEnv if parallel and num_envs > 1 else SerialEnv
+    kwargs = {"mp_start_method": "spawn"} if cls is ParallelEnv else {}
+    env = cls(num_envs, factory, **kwargs)
+    if seed is not None:
+        env.set_seed(seed)
+    return env
+
+
+def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale: float = 1.0,
+                    encoder: nn.Module | None = None, state_noise: float = 0.0, noise_seed: int | None = None,
+                    **batched_kwargs):
+    """A batched env with the acting transforms of a DT policy.
+
+    ``encoder`` (student): ``EncoderTransform`` writes ``"state_estimate"`` from ``"pixels"``
+    (pixels are switched on); ``state_noise`` adds Gaussian noise to ``"state_estimate"``
+    (``"state"`` for a teacher); ``target_return`` adds the ``ReturnToGo`` countdown.
+    """
+    from torchrl.envs import Compose, TransformedEnv
+
+    from trakdis.transforms import EncoderTransform, ReturnToGo, StateNoise
+
+    if encoder is not None:
+        batched_kwargs["from_pixels"] = True
+    env = make_batched_env(task, **batched_kwargs)
+    transforms = []
+    if encoder is not None:
+        transforms.append(EncoderTransform(encoder, in_key="pixels", out_key="state_estimate"))
+    if state_noise > 0:
+        key = "state_estimate" if encoder is not None else "state"
+        transforms.append(StateNoise(state_noise, in_keys=[key], seed=noise_seed))
+    if target_return is not None:
+        transforms.append(ReturnToGo(target_return, rtg_scale=rtg_scale))
+    return TransformedEnv(env, Compose(*transforms)) if transforms else env
+
+
+# --------------------------------------------------------------------------- encoder files
+class NormalizedEncoder(nn.Module):
+    """``encoder(pixels) * std + mean``: the CNN regresses standardised states, this returns raw ones."""
+
+    def __init__(self, encoder: nn.Module, mean: torch.Tensor, std: torch.Tensor):
+        super().__init__()
+        self.encoder = encoder
+        self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32).clone())
+        self.register_buffer("std", torch.as_tensor(std, dtype=torch.float32).clone())
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        return self.encoder(pixels) * self.std + self.mean
+
+
+def save_encoder(path: str | Path, encoder: NormalizedEncoder, *, task: str, extra: Mapping[str, Any] | None = None) -> Path:
+    inner = encoder.encoder
+    return save_checkpoint(path, {
+        "kind": "encoder", "task": task,
+        "encoder_kwargs": {"state_dim": inner.state_dim, "image_size": inner.image_size,
+                           "channels": [m.out_channels for m in inner.convs if isinstance(m, nn.Conv2d)],
+                           "hidden_dim": inner.head[1].out_features},
+        "state_dict": encoder.state_dict(), **dict(extra or {}),
+    })
+
+
+def encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder:
+    from trakdis.modules import StateEncoder
+
+    kw = dict(data["encoder_kwargs"])
+    enc = NormalizedEncoder(StateEncoder(kw.pop("state_dim"), **kw), torch.zeros(1), torch.ones(1))
+    enc.mean = torch.zeros(enc.encoder.state_dim)
+    enc.std = torch.ones(enc.encoder.state_dim)
+    enc.load_state_dict(data["state_dict"])
+    return enc.eval()
+
+
+def load_encoder(path: str | Path) -> tuple[NormalizedEncoder, dict[str, Any]]:
+    data = load_checkpoint(path, required=("kind", "encoder_kwargs", "state_dict"))
+    if data["kind"] != "encoder":
+        raise CheckpointError(f"{path} is a {data['kind']!r} file, not an encoder (train one with recipes/train_encoder.py)")
+    return encoder_from_dict(data), data
+
+
+# --------------------------------------------------------------------------- policy files
+def save_policy(path: str | Path, *, kind: str, task: str, horizon: int, dt_config, actor: nn.Module,
+                observation_key: str, target_return: float, rtg_scale: float,
+                env_kwargs: Mapping[str, Any] | None = None, encoder_file: Mapping[str, Any] | None = None,
+                extra: Mapping[str, Any] | None = None) -> Path:
+    cfg = dt_config.to_dict() if hasattr(dt_config, "to_dict") else dataclasses.asdict(dt_config)
+    return save_checkpoint(path, {
+        "kind": kind, "task": task, "horizon": int(horizon), "dt_config": cfg,
+        "observation_key": observation_key, "actor": actor.state_dict(),
+        "target_return": float(target_return), "rtg_scale": float(rtg_scale),
+        "env_kwargs": dict(env_kwargs or {}), "encoder": encoder_file, **dict(extra or {}),
+    })
+
+
+@dataclass
+class PolicyHandle:
+    """A loaded policy: ``kind`` in ``{"expert", "teacher", "student"}``."""
+
+    kind: str
+    task: str
+    horizon: int
+    actor: nn.Module | None = None
+    encoder: nn.Module | None = None
+    observation_key: str = "state"
+    target_return: float = -1.0
+    rtg_scale: float = 1.0
+    expert_noise: float = 0.0
+    env_kwargs: dict = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def uses_pixels(self) -> bool:
+        return self.encoder is not None
+
+    def make_env(self, *, num_envs: int = 1, split: str = "eval", seed: int | None = None, state_noise: float = 0.0,
+                 parallel: bool = False, from_pixels: bool | None = None, image_size: int = 32,
+                 target_return: float | None = None):
+        """The acting env of this policy (pixels on for a student, or when ``from_pixels``)."""
+        is_dt = self.kind != "expert"
+        return make_acting_env(
+            self.task,
+            target_return=(self.target_return if target_return is None else target_return) if is_dt else None,
+            rtg_scale=self.rtg_scale, encoder=self.encoder, state_noise=state_noise,
+            noise_seed=None if seed is None else seed + 7919,
+            num_envs=num_envs, parallel=parallel, seed=seed, split=split,
+            from_pixels=bool(from_pixels) or self.uses_pixels, image_size=image_size,
+            env_kwargs={"horizon": self.horizon, **self.env_kwargs},
+        )
+
+    def make_policy(self, *, seed: int | None = None):
+        """A TensorDict module writing ``"action"``: the DT acting wrapper, or the scripted expert."""
+        if self.kind == "expert":
+            from trakdis.envs import ExpertPolicy
+
+            return ExpertPolicy(self.task, noise=self.expert_noise, seed=seed)
+        from trakdis.modules import DTActingPolicy
+
+        self.actor.eval()
+        return DTActingPolicy(self.actor, observation_key=self.observation_key)
+
+
+def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
+                expert_noise: float = 0.0, device: str = "cpu") -> PolicyHandle:
+    """``"expert"`` or the path of a policy file (or of a run directory holding ``policy.pt``)."""
+    if str(spec) == "expert":
+        if task is None:
+            raise ValueError("the expert policy needs --task")
+        return PolicyHandle("expert", task, horizon or 100, expert_noise=expert_noise, source="expert")
+    path = Path(spec)
+    if path.is_dir():
+        path = path / "policy.pt"
+    data = load_checkpoint(path, required=("kind", "task", "dt_config", "actor", "observation_key"))
+    if data["kind"] not in ("teacher", "student"):
+        raise CheckpointError(f"{path}: kind {data['kind']!r} is not a policy (expected teacher or student)")
+    if task is not None and task != data["task"]:
+        raise ValueError(f"{path} is a {data['task']} policy, but task {task!r} was asked for")
+    from trakdis.modules import DTConfig, make_dt_actor
+
+    actor = make_dt_actor(DTConfig(**data["dt_config"]), observation_key=data["observation_key"], device=device)
+    try:
+        actor.load_state_dict(data["actor"])
+    except RuntimeError as err:
+        raise CheckpointError(f"{path}: actor weights do not match its dt_config: {err}") from err
+    encoder = encoder_from_dict(data["encoder"]) if data.get("encoder") else None
+    if data["kind"] == "student" and encoder is None:
+        raise CheckpointError(f"{path}: a student policy file must contain its encoder")
+    return PolicyHandle(
+        data["kind"], data["task"], horizon or data["horizon"], actor=actor.eval(), encoder=encoder,
+        observation_key=data["observation_key"], target_return=data["target_return"],
+        rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
+    )
