@@ -1,0 +1,42 @@
+"""MuJoCo cloth-folding tasks (gymnasium), scripted experts and the TorchRL factory.
+
+Importing this package sets ``MUJOCO_GL=egl`` if no GL backend is chosen (before MuJoCo is
+imported) and registers the gymnasium ids ``trakdis/<Task>-v0``.
+"""
+
+from trakdis.envs.rendering import configure_gl
+
+configure_gl()
+
+import gymnasium as _gym  # noqa: E402
+
+from trakdis.envs.cloth_env import (  # noqa: E402
+    ClothEnv,
+    ClothFoldDiagonalPinnedEnv,
+    ClothFoldDiagonalUnpinnedEnv,
+    ClothFoldEnv,
+    ENV_CLASSES,
+)
+from trakdis.envs.experts import ExpertPolicy, expert_action  # noqa: E402
+from trakdis.envs.specs import TASKS, ClothConfig, TaskSpec, cloth_config, task_spec  # noqa: E402
+from trakdis.envs.torchrl_env import make_env  # noqa: E402
+
+for _task, _cls in ENV_CLASSES.items():
+    _id = f"trakdis/{_task}-v0"
+    if _id not in _gym.registry:
+        _gym.register(id=_id, entry_point=f"{_cls.__module__}:{_cls.__name__}")
+
+__all__ = [
+    "TASKS",
+    "TaskSpec",
+    "ClothConfig",
+    "task_spec",
+    "cloth_config",
+    "ClothEnv",
+    "ClothFoldEnv",
+    "ClothFoldDiagonalPinnedEnv",
+    "ClothFoldDiagonalUnpinnedEnv",
+    "ExpertPolicy",
+    "expert_action",
+    "make_env",
+]

@@ -1,0 +1,141 @@
+"""Scripted experts: closed-loop, stateless functions of (reduced state, step count).
+
+Each picker folds one "source" corner onto a "target" corner:
+
+* ClothFold: picker 0 carries c0N onto c00, picker 1 carries cNN onto cN0 (far half onto near).
+* Diagonal folds: picker 0 carries c00 onto cNN.
+
+The mode of a picker is read from the state alone, so the expert needs no memory and recovers
+from a dropped corner:
+
+* *approach*: the picker is not at its source corner -> move to it; ``pick`` once within 1 cm.
+* *carry*: the picker is at the source corner (so it holds it) -> move along the semicircle that
+  an inextensible flap hinged half way to the target would follow. The circle is fitted to the
+  current picker position (it passes through the target and the picker, centre on the table
+  line through both), the picker advances ``dphi`` along it per step; two pickers share the
+  slower one's angle so the folded edge stays straight.
+* *done*: the source corner lies on the target corner -> release and lift.
+
+At ``step_count >= release_step`` every picker releases (the episode is scored at its end).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from trakdis.envs.specs import check_task, task_spec
+
+# (source corner, target corner) per picker; corners are blocks 0..3 of the state: c00, c0N, cN0, cNN
+FOLD_PLAN = {
+    "ClothFold": ((1, 0), (3, 2)),
+    "ClothFoldDiagonalPinned": ((0, 3),),
+    "ClothFoldDiagonalUnpinned": ((0, 3),),
+}
+
+
+def expert_action(
+    task: str,
+    state: np.ndarray,
+    step_count: np.ndarray | int = 0,
+    *,
+    step_size: float = 0.06,
+    dphi: float = np.pi / 14,
+    layer_height: float = 0.012,
+    release_step: int = 95,
+) -> np.ndarray:
+    """Expert action for ``state`` of shape ``[*B, state_dim]`` -> ``[*B, action_dim]`` float32.
+
+    Args:
+        task: task name.
+        state: reduced state(s).
+        step_count: steps since reset, broadcastable to ``[*B]`` (a trailing dim of 1 is fine).
+        step_size: the env's maximum picker move per step (``action_repeat * move_per_substep``).
+        dphi: carry speed, radians of the fold arc per step.
+        layer_height: height above the target corner where the source corner is laid (m).
+        release_step: from this step on every picker releases and lifts.
+    """
+    check_task(task)
+    spec = task_spec(task)
+    state = np.asarray(state, dtype=np.float64)
+    if state.shape[-1] != spec.state_dim:
+        raise ValueError(f"{task}: state must have last dim {spec.state_dim}, got shape {state.shape}")
+    batch = state.shape[:-1]
+    t = np.asarray(step_count)
+    if t.ndim == len(batch) + 1 and t.shape[-1] == 1:
+        t = t[..., 0]
+    t = np.broadcast_to(t, batch)
+    corners = state[..., :12].reshape(*batch, 4, 3)
+    pickers = state[..., 12:].reshape(*batch, spec.num_pickers, 3)
+    plan = FOLD_PLAN[task]
+    src = np.stack([corners[..., s, :] for s, _ in plan], axis=-2)  # [*B, P, 3]
+    tgt = np.stack([corners[..., g, :] for _, g in plan], axis=-2)
+    tgt_top = tgt + np.array([0.0, 0.0, layer_height])
+
+    d_src = np.linalg.norm(pickers - src, axis=-1)  # [*B, P]
+    src_on_tgt = (np.linalg.norm((src - tgt)[..., :2], axis=-1) < 0.02) & (src[..., 2] - tgt[..., 2] < 0.025)
+    holding = d_src < 0.02
+    releasing = (t >= release_step)[..., None]
+    done = src_on_tgt | releasing
+    carry = holding & ~done
+    approach = ~holding & ~done
+
+    # --- carry along the fitted semicircle -------------------------------------------------
+    rel = pickers - tgt
+    d = np.maximum(np.linalg.norm(rel[..., :2], axis=-1), 1e-6)
+    z = np.maximum(rel[..., 2], 0.0)
+    length = np.clip((d**2 + z**2) / d, 0.05, 1.0)  # flap length of the circle through both points
+    u = rel[..., :2] / d[..., None]
+    phi = np.arctan2(z, d - 0.5 * length)  # 0 = flat and unfolded, pi = laid on the target
+    if spec.num_pickers > 1:
+        both = carry.all(axis=-1, keepdims=True)
+        phi = np.where(both, phi.min(axis=-1, keepdims=True), phi)
+    phi_next = np.minimum(phi + dphi, np.pi)
+    radius = 0.5 * length
+    arc = np.concatenate([
+        tgt[..., :2] + (radius * (1.0 + np.cos(phi_next)))[..., None] * u,
+        (tgt[..., 2] + radius * np.sin(phi_next) + layer_height)[..., None],
+    ], axis=-1)
+    close = (d < 0.03)[..., None]
+    carry_target = np.where(close, tgt_top, arc)
+
+    # --- approach / done targets -----------------------------------------------------------
+    lift = pickers.copy()
+    lift[..., 2] = np.maximum(pickers[..., 2], 0.0) + step_size
+    target = np.where(carry[..., None], carry_target, np.where(approach[..., None], src, lift))
+    move = np.clip((target - pickers) / step_size, -1.0, 1.0)
+    pick = np.where(carry | (approach & (d_src < 0.01)), 1.0, -1.0)
+    action = np.concatenate([move, pick[..., None]], axis=-1)
+    return action.reshape(*batch, spec.action_dim).astype(np.float32)
+
+
+class ExpertPolicy(TensorDictModuleBase):
+    """Scripted expert as a TensorDict module: reads ``"state"``, ``"step_count"``; writes ``"action"``.
+
+    Stateless and batched (any leading batch shape), so it runs inside ``SerialEnv``/``ParallelEnv``
+    rollouts and TorchRL collectors. ``noise`` is the std of Gaussian noise added to the action
+    (then clipped to [-1, 1]), drawn from a generator seeded with ``seed``.
+    """
+
+    def __init__(self, task: str, noise: float = 0.0, seed: int | None = None, **expert_kwargs):
+        super().__init__()
+        self.task = check_task(task)
+        if noise < 0:
+            raise ValueError(f"noise must be >= 0, got {noise}")
+        self.noise = float(noise)
+        self.expert_kwargs = expert_kwargs
+        self.in_keys = ["state", "step_count"]
+        self.out_keys = ["action"]
+        self._rng = np.random.default_rng(seed)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state = tensordict.get("state")
+        step = tensordict.get("step_count", None)
+        step_np = 0 if step is None else step.detach().cpu().numpy()
+        action = expert_action(self.task, state.detach().cpu().numpy(), step_np, **self.expert_kwargs)
+        if self.noise > 0:
+            action = np.clip(action + self.noise * self._rng.standard_normal(action.shape), -1.0, 1.0)
+        tensordict.set("action", torch.as_tensor(action, dtype=torch.float32, device=state.device))
+        return tensordict

@@ -1,0 +1,106 @@
+"""Offscreen rendering: GL backend selection and a small renderer with clear failure messages.
+
+MuJoCo picks its OpenGL backend when ``mujoco`` is first imported, from ``MUJOCO_GL``. On a
+machine without a display, EGL (Mesa llvmpipe on a CPU) is the backend that works, so
+:func:`configure_gl` sets ``MUJOCO_GL=egl`` (and ``PYOPENGL_PLATFORM`` to match) when nothing is
+set. It must run before ``import mujoco``; ``trakdis.envs`` calls it on import.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+GL_HELP = (
+    "MuJoCo could not create an offscreen OpenGL context (MUJOCO_GL={gl!r}). To fix it: on a "
+    "headless Linux machine install Mesa EGL (e.g. `apt-get install libegl1 libgl1-mesa-dri`) and "
+    "set MUJOCO_GL=egl before Python imports mujoco; with a display use MUJOCO_GL=glfw; "
+    "MUJOCO_GL=osmesa needs libosmesa6. State-only environments (from_pixels=False) do not need "
+    "OpenGL. Original error: {err}"
+)
+
+
+def configure_gl() -> str:
+    """Default ``MUJOCO_GL`` to ``egl`` (and ``PYOPENGL_PLATFORM`` to the same); return it."""
+    gl = os.environ.setdefault("MUJOCO_GL", "egl")
+    if gl in ("egl", "osmesa"):
+        os.environ.setdefault("PYOPENGL_PLATFORM", gl)
+    return gl
+
+
+class FrameRenderer:
+    """Renders the ``main`` camera to ``uint8 [size, size, 3]``.
+
+    Renders at ``size * supersample`` pixels and downsamples with area averaging (anti-aliasing
+    for small images, like SoftGym's render-large-then-resize). A new MuJoCo model (every reset
+    re-compiles the scene with new cloth geometry) needs a new GL context, see :meth:`bind`.
+    """
+
+    def __init__(self, size: int, supersample: int = 2):
+        if not (isinstance(size, int) and 8 <= size <= 512):
+            raise ValueError(f"image_size must be an int in [8, 512], got {size!r}")
+        if not (isinstance(supersample, int) and 1 <= supersample <= 4):
+            raise ValueError(f"render_supersample must be an int in [1, 4], got {supersample!r}")
+        self.size = size
+        self.supersample = supersample
+        self._renderer = None
+        self._model = None
+
+    @property
+    def render_size(self) -> int:
+        return self.size * self.supersample
+
+    def bind(self, model) -> None:
+        """Create (or re-create) the GL context for ``model``."""
+        import mujoco
+
+        self.close()
+        try:
+            self._renderer = mujoco.Renderer(model, self.render_size, self.render_size)
+        except Exception as err:  # noqa: BLE001 - re-raised with instructions
+            raise RuntimeError(GL_HELP.format(gl=os.environ.get("MUJOCO_GL"), err=err)) from err
+        self._model = model
+
+    def render(self, data) -> np.ndarray:
+        if self._renderer is None:
+            raise RuntimeError("FrameRenderer.render() called before bind(model)")
+        self._renderer.update_scene(data, camera="main")
+        img = self._renderer.render()
+        if self.supersample > 1:
+            s = self.supersample
+            img = img.reshape(self.size, s, self.size, s, 3).mean(axis=(1, 3))
+            img = np.rint(img).astype(np.uint8)
+        return np.ascontiguousarray(img)
+
+    def camera_matrix(self, data) -> np.ndarray:
+        """3 x 4 projection from world coordinates to pixel coordinates of the output image.
+
+        Pixel coordinates: u to the right, v downwards, pixel centres at integer + 0.5.
+        """
+        import mujoco
+
+        model = self._model
+        cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "main")
+        pos = data.cam_xpos[cam_id]
+        rot = data.cam_xmat[cam_id].reshape(3, 3)  # columns: camera x, y, z axes in world frame
+        fovy = np.deg2rad(model.cam_fovy[cam_id])
+        f = 0.5 * self.size / np.tan(0.5 * fovy)
+        k = np.array([[f, 0, 0.5 * self.size], [0, f, 0.5 * self.size], [0, 0, 1.0]])
+        # camera frame: x right, y up, looking along -z; image v grows downwards
+        flip = np.diag([1.0, -1.0, -1.0])
+        r_wc = flip @ rot.T
+        t = -r_wc @ pos
+        return k @ np.hstack([r_wc, t[:, None]])
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+        self._renderer = None
+        self._model = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass
