@@ -1,0 +1,170 @@
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import TanhNormal
+
+from trakdis.modules import CausalTransformer, DecisionTransformer, DTActor, DTConfig, TransformerConfig, make_dt_actor
+
+S, A = 5, 3
+
+
+def small_config(**kw):
+    kw.setdefault("context_len", 6)
+    return DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, **kw)
+
+
+def window(b=4, k=6, *, generator=None, pad=None):
+    g = generator or torch.Generator().manual_seed(0)
+    mask = torch.ones(b, k, dtype=torch.bool)
+    if pad is not None:
+        for i, p in enumerate(pad):
+            mask[i, :p] = False
+    return TensorDict(
+        observation=torch.randn(b, k, S, generator=g),
+        action=torch.rand(b, k, A, generator=g) * 1.8 - 0.9,
+        return_to_go=torch.randn(b, k, 1, generator=g),
+        timestep=torch.arange(k).expand(b, k).clone(),
+        mask=mask,
+        batch_size=[b, k],
+    )
+
+
+def run(dt, td):
+    return dt(td["observation"], td["action"], td["return_to_go"], td["timestep"], td["mask"])
+
+
+def test_config_presets_and_validation():
+    c = DTConfig.paper(18, 8)
+    assert (c.embed_dim, c.n_layer, c.n_head, c.context_len, c.max_timestep) == (256, 10, 16, 30, 1024)
+    assert DTConfig.paper(18, 8, context_len=5).context_len == 5
+    d = DTConfig(18, 8)
+    assert (d.embed_dim, d.n_layer, d.n_head, d.context_len) == (128, 3, 4, 20)
+    with pytest.raises(ValueError, match="divisible"):
+        DTConfig(18, 8, embed_dim=30, n_head=4)
+    with pytest.raises(ValueError, match="log_std_min"):
+        DTConfig(18, 8, log_std_min=2.0, log_std_max=-5.0)
+    with pytest.raises(ValueError, match="activation"):
+        TransformerConfig(activation="swish")
+
+
+def test_shapes_and_extra_batch_dims():
+    torch.manual_seed(0)
+    dt = DecisionTransformer(small_config()).eval()
+    td = window()
+    h = run(dt, td)
+    assert h.shape == (4, 6, 32)
+    td2 = td.reshape(2, 2, 6)
+    h2 = dt(td2["observation"], td2["action"], td2["return_to_go"], td2["timestep"], td2["mask"])
+    assert h2.shape == (2, 2, 6, 32)
+    torch.testing.assert_close(h2.reshape(4, 6, 32), h)
+
+
+def test_shape_and_timestep_errors_name_the_key():
+    dt = DecisionTransformer(small_config(max_timestep=10)).eval()
+    td = window()
+    with pytest.raises(ValueError, match="'action' has shape"):
+        dt(td["observation"], td["action"][..., :2], td["return_to_go"], td["timestep"], td["mask"])
+    with pytest.raises(ValueError, match="'return_to_go'"):
+        dt(td["observation"], td["action"], td["return_to_go"][..., 0], td["timestep"], td["mask"])
+    with pytest.raises(TypeError, match="'mask' must be bool"):
+        dt(td["observation"], td["action"], td["return_to_go"], td["timestep"], td["mask"].long())
+    with pytest.raises(ValueError, match="max_timestep"):
+        dt(td["observation"], td["action"], td["return_to_go"], td["timestep"] + 8, td["mask"])
+    # out-of-range timesteps on padded steps are ignored
+    td["timestep"][:, 0] = 999
+    td["mask"][:, 0] = False
+    run(dt, td)
+
+
+def test_causality_future_tokens_never_change_earlier_predictions():
+    torch.manual_seed(0)
+    dt = DecisionTransformer(small_config()).eval()
+    td = window()
+    h = run(dt, td)
+    for t in range(6):
+        td2 = td.clone()
+        g = torch.Generator().manual_seed(t)
+        td2["observation"][:, t + 1 :] = torch.randn(td2["observation"][:, t + 1 :].shape, generator=g)
+        td2["return_to_go"][:, t + 1 :] += 3.0
+        td2["action"][:, t:] = -td2["action"][:, t:]  # a_t comes after s_t
+        h2 = run(dt, td2)
+        torch.testing.assert_close(h2[:, : t + 1], h[:, : t + 1], rtol=0, atol=1e-5)
+        if t < 5:
+            assert not torch.allclose(h2[:, t + 1 :], h[:, t + 1 :], atol=1e-3)
+
+
+def test_past_tokens_do_change_predictions():
+    torch.manual_seed(0)
+    dt = DecisionTransformer(small_config()).eval()
+    td = window()
+    td2 = td.clone()
+    td2["action"][:, 2] += 0.5
+    assert not torch.allclose(run(dt, td2)[:, 3:], run(dt, td)[:, 3:], atol=1e-4)
+
+
+def test_padding_content_never_changes_valid_outputs():
+    torch.manual_seed(0)
+    dt = DecisionTransformer(small_config()).eval()
+    pad = [0, 2, 5, 3]
+    td = window(pad=pad)
+    h = run(dt, td)
+    td2 = td.clone()
+    td2["observation"][~td2["mask"]] = float("nan")
+    td2["action"][~td2["mask"]] = float("inf")
+    td2["return_to_go"][~td2["mask"]] = 1e6
+    td2["timestep"][~td2["mask"]] = 5000
+    h2 = run(dt, td2)
+    assert torch.isfinite(h2).all()
+    torch.testing.assert_close(h2[td["mask"]], h[td["mask"]], rtol=0, atol=1e-5)
+    # a left-padded window equals the unpadded, shorter window
+    for i, p in enumerate(pad):
+        short = td[i : i + 1, p:]
+        torch.testing.assert_close(run(dt, short)[0], h[i, p:], rtol=0, atol=1e-5)
+
+
+def test_all_true_mask_fast_path_matches_explicit_mask():
+    torch.manual_seed(0)
+    tr = CausalTransformer(TransformerConfig(embed_dim=32, n_layer=2, n_head=4)).eval()
+    x = torch.randn(3, 9, 32)
+    torch.testing.assert_close(tr(x, torch.ones(3, 9, dtype=torch.bool)), tr(x), rtol=0, atol=1e-5)
+
+
+def test_actor_head_bounds_and_distribution():
+    torch.manual_seed(0)
+    cfg = small_config()
+    net = DTActor(cfg).eval()
+    td = window()
+    with torch.no_grad():
+        net.head_log_std.bias.fill_(100.0)
+        _, scale_hi = net(td["observation"], td["action"], td["return_to_go"], td["timestep"], td["mask"])
+        net.head_log_std.bias.fill_(-100.0)
+        _, scale_lo = net(td["observation"], td["action"], td["return_to_go"], td["timestep"], td["mask"])
+    torch.testing.assert_close(scale_hi, torch.full_like(scale_hi, 2.0).exp())
+    torch.testing.assert_close(scale_lo, torch.full_like(scale_lo, -5.0).exp())
+
+    actor = make_dt_actor(cfg, observation_key="state")
+    assert actor.in_keys == ["state", "action", "return_to_go", "timestep", "mask"]
+    td = window().rename_key_("observation", "state")
+    dist = actor.get_dist(td)
+    assert isinstance(dist, TanhNormal)
+    assert dist.log_prob(td["action"]).shape == (4, 6)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = actor(td.clone())
+    torch.testing.assert_close(out["action"], torch.tanh(out["loc"]))
+    with set_exploration_type(ExplorationType.RANDOM):
+        torch.manual_seed(1)
+        s1 = actor(td.clone())["action"]
+        torch.manual_seed(2)
+        s2 = actor(td.clone())["action"]
+    assert not torch.allclose(s1, s2)
+    assert s1.abs().max() <= 1.0
+
+
+def test_gradients_reach_all_actor_parameters():
+    torch.manual_seed(0)
+    actor = make_dt_actor(small_config())
+    td = window(pad=[0, 1, 2, 3])
+    actor.get_dist(td).log_prob(td["action"]).mean().backward()
+    no_grad = [n for n, p in actor.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert no_grad == []

@@ -1,0 +1,21 @@
+"""Models: causal transformer, Decision Transformer actor, acting wrapper, CNN state encoder."""
+from trakdis.modules.acting import DTActingPolicy
+from trakdis.modules.decision_transformer import DecisionTransformer, DTActor, DTConfig, find_dt_actor, make_dt_actor
+from trakdis.modules.encoder import StateEncoder, to_float_chw
+from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
+from trakdis.modules.weights import copy_teacher_weights
+
+__all__ = [
+    "CausalTransformer",
+    "DTActingPolicy",
+    "DTActor",
+    "DTConfig",
+    "DecisionTransformer",
+    "KVCache",
+    "StateEncoder",
+    "TransformerConfig",
+    "copy_teacher_weights",
+    "find_dt_actor",
+    "make_dt_actor",
+    "to_float_chw",
+]

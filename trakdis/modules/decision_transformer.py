@@ -1,0 +1,262 @@
+"""Decision Transformer (Chen et al. 2021) with the Online DT actor head (Zheng et al. 2022).
+
+Tokens are interleaved per step as ``(R_t, s_t, a_t)`` (return-to-go, state, action), each
+embedded by its own linear layer plus a learned timestep embedding; the action at ``t`` is
+predicted from the output at the state token ``s_t``, so it sees ``R_<=t, s_<=t, a_<t``.
+
+Unlike TorchRL's ``DecisionTransformer`` (HuggingFace GPT-2), this one has a timestep embedding,
+handles left-padded windows with a padding mask, and supports cached incremental decoding
+(:class:`~trakdis.modules.DTActingPolicy`).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import ProbabilisticActor, TanhNormal
+
+from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
+
+__all__ = ["DTConfig", "DecisionTransformer", "DTActor", "make_dt_actor", "find_dt_actor"]
+
+TOKENS_PER_STEP = 3  # (return-to-go, state, action)
+
+
+@dataclass
+class DTConfig:
+    """Decision Transformer sizes; the defaults are a small model that trains on a CPU.
+
+    Args:
+        state_dim: observation (reduced state) width.
+        action_dim: action width.
+        embed_dim, n_layer, n_head, dropout, attn_dropout, mlp_ratio, activation: transformer
+            sizes (see :class:`~trakdis.modules.TransformerConfig`).
+        context_len: K, the number of steps in a training window / acting context.
+        max_timestep: size of the timestep embedding table (timesteps must be < this).
+        log_std_min, log_std_max: bounds of the actor's log standard deviation (Online DT: -5, 2).
+    """
+
+    state_dim: int
+    action_dim: int
+    embed_dim: int = 128
+    n_layer: int = 3
+    n_head: int = 4
+    context_len: int = 20
+    max_timestep: int = 1024
+    dropout: float = 0.1
+    attn_dropout: float = 0.1
+    mlp_ratio: int = 4
+    activation: str = "gelu"
+    log_std_min: float = -5.0
+    log_std_max: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("state_dim", "action_dim", "context_len", "max_timestep"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"DTConfig.{name}={getattr(self, name)} must be >= 1")
+        if not self.log_std_min < self.log_std_max:
+            raise ValueError(f"log_std_min={self.log_std_min} must be < log_std_max={self.log_std_max}")
+        self.transformer_config()  # validates embed_dim/n_head/activation/dropouts
+
+    @classmethod
+    def paper(cls, state_dim: int, action_dim: int, **overrides) -> "DTConfig":
+        """TraKDis paper sizes: embedding 256, 10 layers, 16 heads, context 30."""
+        kwargs = dict(embed_dim=256, n_layer=10, n_head=16, context_len=30)
+        kwargs.update(overrides)
+        return cls(state_dim=state_dim, action_dim=action_dim, **kwargs)
+
+    def transformer_config(self) -> TransformerConfig:
+        return TransformerConfig(
+            embed_dim=self.embed_dim,
+            n_layer=self.n_layer,
+            n_head=self.n_head,
+            dropout=self.dropout,
+            attn_dropout=self.attn_dropout,
+            mlp_ratio=self.mlp_ratio,
+            activation=self.activation,
+        )
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class DecisionTransformer(nn.Module):
+    """Decision Transformer trunk: returns the hidden state at each state token.
+
+    ``forward(observation [B, K, S], action [B, K, A], return_to_go [B, K, 1], timestep [B, K]
+    int64, mask [B, K] bool or None) -> [B, K, embed_dim]``. Extra leading batch dims are
+    flattened and restored. Padded steps (``mask == False``) are zeroed before embedding and
+    masked out of attention, so their content never changes the outputs at real steps.
+    """
+
+    def __init__(self, config: DTConfig):
+        super().__init__()
+        self.config = config
+        d = config.embed_dim
+        self.embed_return = nn.Linear(1, d)
+        self.embed_state = nn.Linear(config.state_dim, d)
+        self.embed_action = nn.Linear(config.action_dim, d)
+        self.embed_timestep = nn.Embedding(config.max_timestep, d)
+        self.embed_ln = nn.LayerNorm(d)
+        self.embed_drop = nn.Dropout(config.dropout)
+        self.transformer = CausalTransformer(config.transformer_config())
+        for lin in (self.embed_return, self.embed_state, self.embed_action):
+            nn.init.normal_(lin.weight, std=0.02)
+            nn.init.zeros_(lin.bias)
+        nn.init.normal_(self.embed_timestep.weight, std=0.02)
+
+    # -- input checks ---------------------------------------------------------------------
+    def _check(self, observation, action, return_to_go, timestep, mask) -> None:
+        c = self.config
+        lead = observation.shape[:-1]
+        expected = {
+            "observation": (observation, (*lead, c.state_dim)),
+            "action": (action, (*lead, c.action_dim)),
+            "return_to_go": (return_to_go, (*lead, 1)),
+            "timestep": (timestep, tuple(lead)),
+        }
+        if mask is not None:
+            expected["mask"] = (mask, tuple(lead))
+        for name, (tensor, shape) in expected.items():
+            if tuple(tensor.shape) != tuple(shape):
+                raise ValueError(
+                    f"DecisionTransformer: {name!r} has shape {tuple(tensor.shape)}, expected {tuple(shape)} "
+                    f"(state_dim={c.state_dim}, action_dim={c.action_dim})"
+                )
+        if timestep.dtype.is_floating_point:
+            raise TypeError(f"DecisionTransformer: 'timestep' must be an integer tensor, got {timestep.dtype}")
+        if mask is not None and mask.dtype != torch.bool:
+            raise TypeError(f"DecisionTransformer: 'mask' must be bool, got {mask.dtype}")
+
+    def _check_timestep(self, timestep: torch.Tensor) -> None:
+        # One host sync; worth it, since an out-of-range index would otherwise fail deep in
+        # the embedding (or silently on some devices).
+        if timestep.numel() and (int(timestep.max()) >= self.config.max_timestep or int(timestep.min()) < 0):
+            raise ValueError(
+                f"DecisionTransformer: 'timestep' values must lie in [0, {self.config.max_timestep - 1}] "
+                f"(DTConfig.max_timestep), got [{int(timestep.min())}, {int(timestep.max())}]"
+            )
+
+    def embed_step(self, observation, action, return_to_go, timestep) -> torch.Tensor:
+        """Embed steps ``[..., *]`` to tokens ``[..., 3, D]`` ordered (R, s, a), before the LayerNorm."""
+        t = self.embed_timestep(timestep)
+        return torch.stack(
+            (self.embed_return(return_to_go) + t, self.embed_state(observation) + t, self.embed_action(action) + t),
+            dim=-2,
+        )
+
+    def forward(
+        self,
+        observation: torch.Tensor,
+        action: torch.Tensor,
+        return_to_go: torch.Tensor,
+        timestep: torch.Tensor,
+        mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        self._check(observation, action, return_to_go, timestep, mask)
+        lead = observation.shape[:-2]
+        k = observation.shape[-2]
+        observation = observation.reshape(-1, k, observation.shape[-1])
+        action = action.reshape(-1, k, action.shape[-1])
+        return_to_go = return_to_go.reshape(-1, k, 1)
+        timestep = timestep.reshape(-1, k)
+        b = observation.shape[0]
+        if mask is not None:
+            mask = mask.reshape(b, k)
+            valid = mask.unsqueeze(-1)
+            # zero padded inputs: NaN/inf padding cannot leak through 0-weight attention
+            observation = torch.where(valid, observation, 0.0)
+            action = torch.where(valid, action, 0.0)
+            return_to_go = torch.where(valid, return_to_go, 0.0)
+            timestep = torch.where(mask, timestep, 0)
+            if bool(mask.all()):  # fast path: plain causal attention (fused SDPA kernels)
+                mask = None
+        self._check_timestep(timestep)
+        tokens = self.embed_step(observation, action, return_to_go, timestep.long())  # [B, K, 3, D]
+        tokens = self.embed_drop(self.embed_ln(tokens.reshape(b, TOKENS_PER_STEP * k, -1)))
+        token_mask = None if mask is None else mask.repeat_interleave(TOKENS_PER_STEP, dim=-1)
+        h = self.transformer(tokens, token_mask)
+        h = h.view(b, k, TOKENS_PER_STEP, -1)[:, :, 1]  # outputs at the state tokens
+        return h.reshape(*lead, k, h.shape[-1])
+
+    def forward_cached(
+        self, tokens_in: torch.Tensor, cache: KVCache, slots: torch.Tensor, attn_mask: torch.Tensor
+    ) -> torch.Tensor:
+        """Run pre-embedded (not yet normalised) new tokens ``[B, T_new, D]`` against a cache."""
+        return self.transformer.forward_cached(self.embed_drop(self.embed_ln(tokens_in)), cache, slots, attn_mask)
+
+
+class DTActor(nn.Module):
+    """Decision Transformer with the Online DT Gaussian head: returns ``(loc, scale)``.
+
+    ``scale = exp(log_std)`` with ``log_std = min + (max - min) * (tanh(x) + 1) / 2`` in
+    ``[log_std_min, log_std_max]`` (Online DT). The tanh squashing of actions to [-1, 1] is done
+    by the ``TanhNormal`` distribution of the :class:`ProbabilisticActor` that wraps this module.
+    """
+
+    def __init__(self, config: DTConfig):
+        super().__init__()
+        self.config = config
+        self.transformer = DecisionTransformer(config)
+        self.head_loc = nn.Linear(config.embed_dim, config.action_dim)
+        self.head_log_std = nn.Linear(config.embed_dim, config.action_dim)
+        for lin in (self.head_loc, self.head_log_std):
+            nn.init.orthogonal_(lin.weight)
+            nn.init.zeros_(lin.bias)
+
+    def head(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        c = self.config
+        log_std = torch.tanh(self.head_log_std(h))
+        log_std = c.log_std_min + 0.5 * (c.log_std_max - c.log_std_min) * (log_std + 1.0)
+        return self.head_loc(h), log_std.exp()
+
+    def forward(self, observation, action, return_to_go, timestep, mask=None):
+        return self.head(self.transformer(observation, action, return_to_go, timestep, mask))
+
+
+def make_dt_actor(
+    config: DTConfig, observation_key="observation", *, device: torch.device | str | None = None
+) -> ProbabilisticActor:
+    """Build a TorchRL ``ProbabilisticActor`` around a :class:`DTActor`.
+
+    The actor reads ``[observation_key, "action", "return_to_go", "timestep", "mask"]`` over
+    ``[B, K]`` windows, writes ``"loc"``/``"scale"`` and an ``"action"`` drawn from
+    ``TanhNormal(loc, scale, low=-1, high=1)`` according to the current ``ExplorationType``
+    (deterministic: ``tanh(loc)``; random: a sample). ``actor.get_dist(td)`` gives the per-step
+    distribution (log-prob shape ``[B, K]``) for the losses; it is also accepted by
+    ``torchrl.objectives.OnlineDTLoss``.
+
+    Note that calling the actor overwrites ``"action"``: use ``get_dist`` on training windows.
+    """
+    net = DTActor(config)
+    if device is not None:
+        net = net.to(device)
+    module = TensorDictModule(
+        net,
+        in_keys=[observation_key, "action", "return_to_go", "timestep", "mask"],
+        out_keys=["loc", "scale"],
+    )
+    spec = Bounded(low=-1.0, high=1.0, shape=(config.action_dim,), device=device)
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        out_keys=["action"],
+        spec=spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": -1.0, "high": 1.0},
+        return_log_prob=False,
+    )
+
+
+def find_dt_actor(actor: nn.Module) -> DTActor:
+    """Return the (unique) :class:`DTActor` inside ``actor`` (an actor from :func:`make_dt_actor`)."""
+    if isinstance(actor, DTActor):
+        return actor
+    found = [m for m in actor.modules() if isinstance(m, DTActor)]
+    if len(found) != 1:
+        raise ValueError(f"expected exactly one DTActor inside {type(actor).__name__}, found {len(found)}")
+    return found[0]
