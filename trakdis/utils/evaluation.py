@@ -162,3 +162,24 @@ def markdown_table(frame: pd.DataFrame) -> str:
     for rec in frame.itertuples(index=False):
         lines.append("| " + " | ".join(fmt(v) for v in rec) + " |")
     return "\n".join(lines)
+
+
+def episode_frames(episode: TensorDictBase, *, large_key: str = "pixels", small_key: str = "pixels_agent",
+                   label: str = "") -> list[np.ndarray]:
+    """Side-by-side frames (large render | agent view upscaled) of one episode ``[T]`` TensorDict,
+    captioned with the step and the normalized performance after it, plus the final frame."""
+    from .video import side_by_side
+
+    for key in (large_key, small_key):
+        if key not in episode.keys():
+            raise KeyError(f"episode_frames: the episode has no {key!r} entry; keys are {sorted(map(str, episode.keys()))}")
+    perf = episode.get(("next", "normalized_performance")).reshape(-1)
+    frames = []
+    for t in range(episode.shape[0]):
+        frames.append(side_by_side(episode.get(large_key)[t], episode.get(small_key)[t],
+                                   text=f"{label} t={t} perf={float(perf[t]):.3f}".strip()))
+    nxt = episode.get("next")
+    if large_key in nxt.keys() and small_key in nxt.keys():
+        frames.append(side_by_side(nxt.get(large_key)[-1], nxt.get(small_key)[-1],
+                                   text=f"{label} end perf={float(perf[-1]):.3f}".strip()))
+    return frames

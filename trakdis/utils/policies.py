@@ -60,23 +60,33 @@ def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, se
 
 def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale: float = 1.0,
                     encoder: nn.Module | None = None, state_noise: float = 0.0, noise_seed: int | None = None,
-                    **batched_kwargs):
+                    video_size: int | None = None, **batched_kwargs):
     """A batched env with the acting transforms of a DT policy.
 
     ``encoder`` (student): ``EncoderTransform`` writes ``"state_estimate"`` from ``"pixels"``
     (pixels are switched on); ``state_noise`` adds Gaussian noise to ``"state_estimate"``
     (``"state"`` for a teacher); ``target_return`` adds the ``ReturnToGo`` countdown.
+
+    ``video_size``: render ``"pixels"`` at this size (for videos) and write the agent's view,
+    resized to ``image_size``, to ``"pixels_agent"`` (which the encoder then reads). A resized
+    large render is close to, but not bit-identical with, a native small render.
     """
     from torchrl.envs import Compose, TransformedEnv
 
-    from trakdis.transforms import EncoderTransform, ReturnToGo, StateNoise
+    from trakdis.transforms import EncoderTransform, ImageResize, ReturnToGo, StateNoise
 
+    agent_key = "pixels"
+    transforms = []
+    if video_size is not None:
+        agent_size = batched_kwargs.get("image_size", 32)
+        batched_kwargs.update(from_pixels=True, image_size=int(video_size))
+        agent_key = "pixels_agent"
+        transforms.append(ImageResize(in_keys=["pixels"], out_keys=[agent_key], size=agent_size))
     if encoder is not None:
         batched_kwargs["from_pixels"] = True
     env = make_batched_env(task, **batched_kwargs)
-    transforms = []
     if encoder is not None:
-        transforms.append(EncoderTransform(encoder, in_key="pixels", out_key="state_estimate"))
+        transforms.append(EncoderTransform(encoder, in_key=agent_key, out_key="state_estimate"))
     if state_noise > 0:
         key = "state_estimate" if encoder is not None else "state"
         transforms.append(StateNoise(state_noise, in_keys=[key], seed=noise_seed))
@@ -164,7 +174,7 @@ class PolicyHandle:
 
     def make_env(self, *, num_envs: int = 1, split: str = "eval", seed: int | None = None, state_noise: float = 0.0,
                  parallel: bool = False, from_pixels: bool | None = None, image_size: int = 32,
-                 target_return: float | None = None):
+                 target_return: float | None = None, video_size: int | None = None):
         """The acting env of this policy (pixels on for a student, or when ``from_pixels``)."""
         is_dt = self.kind != "expert"
         return make_acting_env(
@@ -174,7 +184,7 @@ class PolicyHandle:
             noise_seed=None if seed is None else seed + 7919,
             num_envs=num_envs, parallel=parallel, seed=seed, split=split,
             from_pixels=bool(from_pixels) or self.uses_pixels, image_size=image_size,
-            env_kwargs={"horizon": self.horizon, **self.env_kwargs},
+            env_kwargs={"horizon": self.horizon, **self.env_kwargs}, video_size=video_size,
         )
 
     def make_policy(self, *, seed: int | None = None):

@@ -53,12 +53,18 @@ def side_by_side(
     frame = np.ascontiguousarray(np.concatenate([large, sep, up], axis=1))
     if labels:
         for (x0, label) in zip((0, large.shape[1] + 4), labels):
-            cv2.putText(frame, label, (x0 + 4, 14), _FONT, 0.4, (255, 255, 255), 2, cv2.LINE_AA)
-            cv2.putText(frame, label, (x0 + 4, 14), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+            _caption(frame, label, x0, 0)
     if text:
-        cv2.putText(frame, text, (4, h - 6), _FONT, 0.4, (255, 255, 255), 2, cv2.LINE_AA)
-        cv2.putText(frame, text, (4, h - 6), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        _caption(frame, text, 0, h - 18)
     return frame
+
+
+def _caption(frame: np.ndarray, text: str, x0: int, y0: int) -> None:
+    """White text on a dark strip (readable on any background, survives video compression)."""
+    (tw, _), _ = cv2.getTextSize(text, _FONT, 0.4, 1)
+    x1, y1 = min(frame.shape[1], x0 + tw + 8), min(frame.shape[0], y0 + 18)
+    frame[y0:y1, x0:x1] = (frame[y0:y1, x0:x1] * 0.35).astype(np.uint8)
+    cv2.putText(frame, text, (x0 + 4, y0 + 13), _FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 class VideoWriter:

@@ -1,0 +1,110 @@
+"""Evaluate a saved policy (the scripted expert, a teacher or a student) on the eval split.
+
+    python recipes/evaluate.py --policy expert --task ClothFold
+    python recipes/evaluate.py --policy runs/online_dt/<name>          # teacher (policy.pt inside)
+    python recipes/evaluate.py --policy runs/distill/<name> --state-noise 0 1e-5 1e-4 1e-3
+
+Runs ``--trials`` episodes (default 100, the paper's count) per state-noise level and writes to
+``runs/evaluate/<name>/``: ``episodes.csv`` (one row per episode), ``summary.csv`` and
+``summary.md`` (mean, std, 25/50/75th percentiles of the normalized performance at the episode's
+end) and ``videos/`` (a few extra episodes: large render side by side with the agent's 32x32 view).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from typing import Literal, Optional
+
+import numpy as np
+import pandas as pd
+import torch
+
+from trakdis.utils.evaluation import episode_frames, run_episodes, summarize, write_summary_table
+from trakdis.utils.policies import load_policy
+from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.video import write_video
+
+Task = Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
+
+
+@dataclass
+class EvaluateConfig(RunConfig):
+    """Evaluate a policy: N trials on the eval split, summary table and videos."""
+
+    policy: str = "expert"
+    """'expert' (scripted expert) or a policy file / run directory holding policy.pt"""
+    task: Optional[Task] = None
+    """task (required for the expert; a policy file knows its own)"""
+    trials: int = 100
+    """episodes per state-noise level"""
+    split: Literal["train", "eval"] = "eval"
+    """configuration pool of the episodes"""
+    horizon: Optional[int] = None
+    """episode length (default: the policy's, 100)"""
+    state_noise: tuple[float, ...] = (0.0,)
+    """Gaussian noise std added to the (estimated) state; several values -> one row each"""
+    expert_noise: float = 0.0
+    """action noise of the scripted expert"""
+    target_return: Optional[float] = None
+    """initial return-to-go of a DT policy (default: the one saved with it)"""
+    num_envs: int = 2
+    """environments stepped together (batched rollouts)"""
+    parallel: bool = False
+    """step them in subprocesses (ParallelEnv) instead of in turn (SerialEnv)"""
+    videos: int = 2
+    """extra episodes recorded as videos (0: none)"""
+    video_size: int = 192
+    """side of the large render in the videos"""
+    fps: float = 10.0
+    """video frame rate"""
+
+
+def main(argv=None) -> pd.DataFrame:
+    run = Run.start("evaluate", EvaluateConfig, argv, description=__doc__)
+    cfg = run.cfg
+    if cfg.threads == 0:
+        torch.set_num_threads(1)
+    handle = load_policy(cfg.policy, task=cfg.task, horizon=cfg.horizon, expert_noise=cfg.expert_noise, device=cfg.device)
+    name = handle.kind if handle.kind == "expert" else f"{handle.kind} ({handle.source})"
+    run.print(f"evaluating {name} on {handle.task} ({cfg.split} split), {cfg.trials} trials x "
+              f"state noise {list(cfg.state_noise)}")
+    rows, summaries = [], []
+    for i, sigma in enumerate(cfg.state_noise):
+        env = handle.make_env(num_envs=cfg.num_envs, split=cfg.split, seed=cfg.seed, state_noise=sigma,
+                              parallel=cfg.parallel, target_return=cfg.target_return)
+        try:
+            res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.trials, max_steps=handle.horizon,
+                               desc=f"sigma={sigma:g}")
+        finally:
+            env.close()
+        for k in range(len(res.final_performance)):
+            rows.append({"state_noise": sigma, "episode": k, "final_normalized_performance": res.final_performance[k],
+                         "return": res.returns[k], "length": int(res.lengths[k]), "sim_unstable": bool(res.unstable[k])})
+        s = summarize(res.final_performance)
+        summaries.append({"task": handle.task, "policy": handle.kind, "state_noise": sigma, **s,
+                          "unstable": int(res.unstable.sum())})
+        run.log(i, {"eval/state_noise": sigma, "eval/normalized_performance": s["mean"], "eval/std": s["std"]})
+        run.print(f"sigma={sigma:g}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} "
+                  f"(p25 {s['p25']:.3f}, p50 {s['p50']:.3f}, p75 {s['p75']:.3f}; {s['n']} trials)")
+    pd.DataFrame(rows).to_csv(run.dir / "episodes.csv", index=False)
+    frame = write_summary_table(summaries, run.dir / "summary.csv", run.dir / "summary.md",
+                                columns=("task", "policy", "state_noise", "n", "mean", "std", "p25", "p50", "p75"))
+    if cfg.videos > 0:
+        env = handle.make_env(num_envs=1, split=cfg.split, seed=cfg.seed + 100_000, state_noise=cfg.state_noise[0],
+                              target_return=cfg.target_return, video_size=cfg.video_size)
+        try:
+            res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.videos, max_steps=handle.horizon,
+                               keep_episodes=True, desc="videos")
+        finally:
+            env.close()
+        for k, ep in enumerate(res.episodes):
+            path = write_video(run.dir / "videos" / f"{handle.task}_{handle.kind}_{k}.mp4",
+                               episode_frames(ep, label=handle.kind), fps=cfg.fps)
+            run.print(f"video: {path} (final normalized performance {res.final_performance[k]:.3f})")
+    run.finish()
+    print(open(run.dir / "summary.md").read())
+    return frame
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
