@@ -11,6 +11,7 @@ handles left-padded windows with a padding mask, and supports cached incremental
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import torch
@@ -38,6 +39,7 @@ class DTConfig:
         context_len: K, the number of steps in a training window / acting context.
         max_timestep: size of the timestep embedding table (timesteps must be < this).
         log_std_min, log_std_max: bounds of the actor's log standard deviation (Online DT: -5, 2).
+        init_log_std: the log standard deviation at initialisation, for every input.
     """
 
     state_dim: int
@@ -53,6 +55,7 @@ class DTConfig:
     activation: str = "gelu"
     log_std_min: float = -5.0
     log_std_max: float = 2.0
+    init_log_std: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "action_dim", "context_len", "max_timestep"):
@@ -60,6 +63,8 @@ class DTConfig:
                 raise ValueError(f"DTConfig.{name}={getattr(self, name)} must be >= 1")
         if not self.log_std_min < self.log_std_max:
             raise ValueError(f"log_std_min={self.log_std_min} must be < log_std_max={self.log_std_max}")
+        if not self.log_std_min < self.init_log_std < self.log_std_max:
+            raise ValueError(f"init_log_std={self.init_log_std} must lie strictly inside ({self.log_std_min}, {self.log_std_max})")
         self.transformer_config()  # validates embed_dim/n_head/activation/dropouts
 
     @classmethod
@@ -194,7 +199,11 @@ class DTActor(nn.Module):
     """Decision Transformer with the Online DT Gaussian head: returns ``(loc, scale)``.
 
     ``scale = exp(log_std)`` with ``log_std = min + (max - min) * (tanh(x) + 1) / 2`` in
-    ``[log_std_min, log_std_max]`` (Online DT). The tanh squashing of actions to [-1, 1] is done
+    ``[log_std_min, log_std_max]`` (Online DT). Unlike Online DT/TorchRL (orthogonal init of the
+    log-std layer, so the initial std is anywhere in ``[e^-5, e^2]`` depending on the input), the
+    log-std layer starts with zero weights and a bias giving ``log_std = init_log_std``: with the
+    orthogonal init, steps whose initial std is ~e^-5 produce NLLs of ~1e4 whose gradients slam
+    other dims into the saturated top of the tanh, where training stalls. The tanh squashing of actions to [-1, 1] is done
     by the ``TanhNormal`` distribution of the :class:`ProbabilisticActor` that wraps this module.
     """
 
@@ -204,9 +213,11 @@ class DTActor(nn.Module):
         self.transformer = DecisionTransformer(config)
         self.head_loc = nn.Linear(config.embed_dim, config.action_dim)
         self.head_log_std = nn.Linear(config.embed_dim, config.action_dim)
-        for lin in (self.head_loc, self.head_log_std):
-            nn.init.orthogonal_(lin.weight)
-            nn.init.zeros_(lin.bias)
+        nn.init.orthogonal_(self.head_loc.weight)
+        nn.init.zeros_(self.head_loc.bias)
+        nn.init.zeros_(self.head_log_std.weight)
+        frac = (config.init_log_std - config.log_std_min) / (config.log_std_max - config.log_std_min)
+        nn.init.constant_(self.head_log_std.bias, math.atanh(2.0 * frac - 1.0))
 
     def head(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         c = self.config

@@ -1,0 +1,139 @@
+import pytest
+import torch
+from tensordict import TensorDict
+
+from trakdis.modules import DTConfig, StateEncoder, copy_teacher_weights, make_dt_actor
+from trakdis.objectives import DistillationLoss
+
+S, A, B, K = 5, 3, 3, 4
+
+
+def cfg():
+    return DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
+
+
+@pytest.fixture
+def actors():
+    torch.manual_seed(0)
+    teacher = make_dt_actor(cfg(), observation_key="state")
+    student = make_dt_actor(cfg(), observation_key="state_estimate")
+    return student, teacher
+
+
+def window(seed=0, pad=(0, 1, 3)):
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.ones(B, K, dtype=torch.bool)
+    for i, p in enumerate(pad):
+        mask[i, :p] = False
+    return TensorDict(
+        state=torch.randn(B, K, S, generator=g),
+        state_estimate=torch.randn(B, K, S, generator=g),
+        pixels=torch.randint(0, 256, (B, K, 32, 32, 3), dtype=torch.uint8, generator=g),
+        action=torch.rand(B, K, A, generator=g) * 1.8 - 0.9,
+        return_to_go=torch.randn(B, K, 1, generator=g),
+        timestep=torch.arange(K).expand(B, K).clone(),
+        mask=mask,
+        batch_size=[B, K],
+    )
+
+
+def test_loss_is_student_nll_of_teacher_mean_action(actors):
+    student, teacher = actors
+    td = window()
+    out = DistillationLoss(student, teacher)(td.clone())
+    assert set(out.keys()) == {"loss_distill", "teacher_student_mse"}
+    with torch.no_grad():
+        t_mean = torch.tanh(teacher.get_dist(td.clone()).root_dist.loc)
+        s_dist = student.get_dist(td.clone())
+        m = td["mask"]
+        expected = -s_dist.log_prob(t_mean)[m].mean()
+        mse = (torch.tanh(s_dist.root_dist.loc) - t_mean).pow(2).mean(-1)[m].mean()
+    torch.testing.assert_close(out["loss_distill"], expected)
+    torch.testing.assert_close(out["teacher_student_mse"], mse)
+    # padded content never changes it
+    td2 = td.clone()
+    td2["state"][~m] = float("nan")
+    td2["state_estimate"][~m] = 1e5
+    torch.testing.assert_close(DistillationLoss(student, teacher)(td2)["loss_distill"], out["loss_distill"], rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("direction", ["teacher_student", "student_teacher"])
+def test_gradients_reach_only_the_student(actors, direction):
+    student, teacher = actors
+    encoder = StateEncoder(S)
+    td = window()
+    td["state_estimate"] = encoder(td["pixels"])  # part of the encoder's graph
+    loss = DistillationLoss(student, teacher, kl_coef=0.5, kl_direction=direction)
+    teacher_params = set(teacher.parameters())
+    assert not teacher_params & set(loss.parameters())
+    assert set(loss.parameters()) == set(loss.student_network_params.values(True, True))
+    torch.manual_seed(0)
+    out = loss(td)
+    assert torch.isfinite(out["loss_kl"])
+    (out["loss_distill"] + out["loss_kl"]).backward()
+    assert all(p.grad is None for p in teacher.parameters())
+    assert all(p.grad is None for p in encoder.parameters())
+    grads = [p.grad for p in loss.student_network_params.values(True, True)]
+    assert all(g is not None for g in grads) and sum(g.abs().sum() for g in grads) > 0
+
+
+def test_kl_is_zero_for_identical_policies_and_positive_otherwise(actors):
+    student, teacher = actors
+    td = window()
+    td["state_estimate"] = td["state"].clone()
+    for direction in ("teacher_student", "student_teacher"):
+        torch.manual_seed(0)
+        far = DistillationLoss(student, teacher, kl_coef=1.0, kl_direction=direction)(td.clone())
+        assert far["loss_kl"] > 0.05
+        # exact closed form: agrees with a large Monte-Carlo estimate on the TanhNormals
+        with torch.no_grad():
+            pt, ps = teacher.get_dist(td.clone()), student.get_dist(td.clone())
+            p, q = (pt, ps) if direction == "teacher_student" else (ps, pt)
+            u = p.root_dist.sample((20000,))
+            mc = (p.root_dist.log_prob(u) - q.root_dist.log_prob(u)).sum(-1).mean(0)[td["mask"]].mean()
+        torch.testing.assert_close(far["loss_kl"], mc, rtol=0.05, atol=0.02)
+    copy_teacher_weights(student, teacher)
+    for direction in ("teacher_student", "student_teacher"):
+        out = DistillationLoss(student, teacher, kl_coef=1.0, kl_direction=direction)(td.clone())
+        assert abs(out["loss_kl"].item()) < 1e-6
+        assert out["teacher_student_mse"].item() < 1e-10
+
+
+def test_training_the_student_matches_the_teacher(actors):
+    student, teacher = actors
+    td = window()
+    td["state_estimate"] = td["state"] + 0.05 * torch.randn(B, K, S)  # a decent encoder
+    loss = DistillationLoss(student, teacher)
+    opt = torch.optim.Adam(loss.parameters(), lr=3e-3)
+    start = loss(td)["teacher_student_mse"].item()
+    for _ in range(60):
+        out = loss(td)
+        opt.zero_grad()
+        out["loss_distill"].backward()
+        opt.step()
+    assert loss(td)["teacher_student_mse"].item() < 0.3 * start
+
+
+def test_set_keys_and_errors(actors):
+    student, teacher = actors
+    loss = DistillationLoss(student, teacher)
+    assert {"state", "state_estimate", "mask"} <= set(loss.in_keys)
+    td = window()
+    td["valid"] = td["mask"].clone()
+    td["valid"][:, :2] = False  # the loss's own mask may exclude more steps than the actors' "mask"
+    loss.set_keys(mask="valid")
+    with pytest.raises(KeyError, match="'valid'"):
+        loss(td.exclude("valid"))
+    out = loss(td.clone())
+    with torch.no_grad():
+        t_mean = torch.tanh(teacher.get_dist(td.clone()).root_dist.loc)
+        expected = -student.get_dist(td.clone()).log_prob(t_mean)[td["valid"]].mean()
+    torch.testing.assert_close(out["loss_distill"], expected)
+    with pytest.raises(ValueError, match="not an accepted tensordict key"):
+        loss.set_keys(state="x")
+    with pytest.raises(ValueError, match="kl_direction"):
+        DistillationLoss(student, teacher, kl_direction="both")
+    with pytest.raises(ValueError, match="distinct"):
+        DistillationLoss(student, student)
+    with pytest.raises(KeyError):
+        loss(window().exclude("state_estimate"))

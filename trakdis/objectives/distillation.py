@@ -1,0 +1,129 @@
+"""Policy distillation loss: the student DT imitates the frozen privileged teacher DT."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from trakdis.objectives.dt_loss import clamp_action, get_mask, masked_mean
+
+__all__ = ["DistillationLoss"]
+
+_KL_DIRECTIONS = ("teacher_student", "student_teacher")
+
+
+class DistillationLoss(LossModule):
+    r"""TraKDis distillation: student NLL of the frozen teacher's actions on the same windows.
+
+    The teacher reads its own observation key (the privileged ``"state"``), the student its own
+    (``"state_estimate"`` from the encoder); both read the same ``"action"``,
+    ``"return_to_go"``, ``"timestep"`` and ``"mask"`` of the window.
+
+    * ``loss_distill = masked_mean(-log pi_S(a_T))`` with ``a_T = tanh(loc_T)``, the teacher's
+      deterministic action, computed under ``no_grad`` (clamped to ``[-1 + eps, 1 - eps]``).
+    * ``loss_kl`` (only if ``kl_coef > 0``) = ``kl_coef`` x masked mean per-step KL, either
+      ``"teacher_student"``: ``KL(pi_T || pi_S)`` (mode covering) or ``"student_teacher"``:
+      ``KL(pi_S || pi_T)`` (mode seeking). Both policies are ``tanh`` of diagonal Gaussians and
+      KL is invariant under that shared bijection, so the KL is computed exactly, in closed form,
+      on the pre-tanh Gaussians (a sample-based estimate through ``atanh`` is noisy and
+      numerically poor where tanh saturates). The teacher side is a constant.
+    * metric ``teacher_student_mse``: masked mean squared difference of the deterministic actions.
+
+    No gradient reaches the teacher (its parameters are held as detached buffers, not
+    parameters of this module) nor the encoder (the student's inputs are detached).
+
+    Args:
+        student_actor, teacher_actor: actors from :func:`~trakdis.modules.make_dt_actor`.
+
+    Keyword Args:
+        kl_coef: weight of ``loss_kl`` (0 disables it).
+        kl_direction: ``"teacher_student"`` or ``"student_teacher"``.
+        action_eps: clamp of the teacher's actions away from +-1.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys.
+
+        Attributes:
+            mask: bool ``[B, K]`` padding mask (True = real step). Defaults to ``"mask"``.
+        """
+
+        mask: NestedKey = "mask"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    student_network: TensorDictModule
+    student_network_params: TensorDictParams
+    target_student_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        student_actor: ProbabilisticTensorDictSequential,
+        teacher_actor: ProbabilisticTensorDictSequential,
+        *,
+        kl_coef: float = 0.0,
+        kl_direction: str = "teacher_student",
+        action_eps: float = 1e-6,
+    ) -> None:
+        super().__init__()
+        if kl_direction not in _KL_DIRECTIONS:
+            raise ValueError(f"kl_direction={kl_direction!r}; expected one of {_KL_DIRECTIONS}")
+        if kl_coef < 0:
+            raise ValueError(f"kl_coef={kl_coef} must be >= 0")
+        if student_actor is teacher_actor:
+            raise ValueError("student_actor and teacher_actor must be distinct modules (copy the weights instead)")
+        self.convert_to_functional(student_actor, "student_network", create_target_params=False)
+        # The teacher is frozen: keep its weights as detached buffers (so they are not in
+        # self.parameters() and no optimizer built from this loss can touch them), and keep the
+        # module itself out of the registered submodules, like convert_to_functional does.
+        self.teacher_network_params = TensorDictParams(TensorDict.from_module(teacher_actor, as_module=True).data, no_convert=True)
+        self.__dict__["teacher_network"] = teacher_actor
+        self.kl_coef = float(kl_coef)
+        self.kl_direction = kl_direction
+        self.action_eps = float(action_eps)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self):
+        keys = set(self.student_network.in_keys) | set(self.teacher_network.in_keys) | {self.tensor_keys.mask}
+        return sorted(keys, key=str)
+
+    @property
+    def out_keys(self):
+        return ["loss_distill"] + (["loss_kl"] if self.kl_coef > 0 else []) + ["teacher_student_mse"]
+
+    def teacher_dist(self, tensordict: TensorDictBase):
+        with self.teacher_network_params.to_module(self.teacher_network):
+            return self.teacher_network.get_dist(tensordict.copy())
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        student_td = tensordict.select(*self.student_network.in_keys, strict=True).detach()
+        with self.student_network_params.to_module(self.student_network):
+            s_dist = self.student_network.get_dist(student_td)
+        with torch.no_grad():
+            t_dist = self.teacher_dist(tensordict)
+            t_action = t_dist.deterministic_sample
+        log_prob = s_dist.log_prob(clamp_action(t_action, self.action_eps))
+        mask = get_mask(tensordict, self.tensor_keys.mask, log_prob, "DistillationLoss")
+        out = {"loss_distill": -masked_mean(log_prob, mask)}
+        if self.kl_coef > 0:
+            # KL is invariant under a bijection applied to both distributions, and both are the
+            # same tanh of a diagonal Gaussian: the KL of the TanhNormals is exactly the
+            # closed-form KL of the pre-tanh Gaussians (no sampling noise, no atanh round trip).
+            t_base = torch.distributions.Normal(t_dist.root_dist.loc, t_dist.root_dist.scale)
+            s_base = torch.distributions.Normal(s_dist.root_dist.loc, s_dist.root_dist.scale)
+            if self.kl_direction == "teacher_student":
+                kl = torch.distributions.kl_divergence(t_base, s_base).sum(-1)
+            else:
+                kl = torch.distributions.kl_divergence(s_base, t_base).sum(-1)
+            out["loss_kl"] = self.kl_coef * masked_mean(kl, mask)
+        with torch.no_grad():
+            out["teacher_student_mse"] = masked_mean((s_dist.deterministic_sample - t_action).pow(2).mean(-1), mask)
+        return TensorDict(out, batch_size=[])
