@@ -132,9 +132,15 @@ def encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder:
 
 
 def load_encoder(path: str | Path) -> tuple[NormalizedEncoder, dict[str, Any]]:
-    data = load_checkpoint(path, required=("kind", "encoder_kwargs", "state_dict"))
+    path = Path(path)
+    if path.is_dir():
+        path = path / "encoder.pt"
+    data = load_checkpoint(path, required=("kind",))
     if data["kind"] != "encoder":
         raise CheckpointError(f"{path} is a {data['kind']!r} file, not an encoder (train one with recipes/train_encoder.py)")
+    missing = [k for k in ("encoder_kwargs", "state_dict") if k not in data]
+    if missing:
+        raise CheckpointError(f"encoder file {path} lacks {missing}")
     return encoder_from_dict(data), data
 
 
