@@ -97,3 +97,27 @@ def make_toy_env_with(transforms_fn=None, **env_kwargs):
     if transforms_fn is not None:
         env = TransformedEnv(env, transforms_fn())
     return env
+
+
+def make_toy_collect_env(size: int = 8, horizon: int = 6, min_len: int = 3, max_len: int = 8):
+    """Toy env shaped like ``trakdis.envs.make_env``: ``"state"``, ``"pixels"``, ``"step_count"`` and
+    truncation at ``horizon`` (episodes may also terminate earlier, after ``min_len..max_len`` steps)."""
+    from torchrl.envs import StepCounter, TransformedEnv
+
+    return TransformedEnv(make_toy_env(size=size, min_len=min_len, max_len=max_len), StepCounter(max_steps=horizon))
+
+
+class _SeededRandomActions(nn.Module):
+    def __init__(self, seed):
+        super().__init__()
+        self.generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
+
+    def forward(self, state):
+        return torch.rand(state.shape, generator=self.generator) * 2 - 1
+
+
+def make_toy_policy(seed=None):
+    """A seeded random policy (reads ``"state"``, writes ``"action"``) for the toy env."""
+    from tensordict.nn import TensorDictModule
+
+    return TensorDictModule(_SeededRandomActions(seed), in_keys=["state"], out_keys=["action"])
