@@ -134,3 +134,41 @@ def test_real_cloth_env_tiny(tmp_path):
     assert steps["truncated"][:, -1].all() and (meta["lengths"] == 4).all()
     assert "final_normalized_performance_mean" in meta["stats"]
     assert steps["pixels"].float().std() > 0
+
+
+_KILL_SCRIPT = """
+import functools, os, signal, sys
+sys.path.insert(0, {toy_dir!r})
+import torch
+from toy_pixel_env import make_toy_collect_env, make_toy_policy
+from trakdis.data import collect_expert_dataset
+
+def die(done, total):
+    if done == 3:
+        os.kill(os.getpid(), signal.SIGKILL)  # no cleanup, no finally blocks, no flush
+
+collect_expert_dataset({path!r}, "Toy", num_episodes=5, num_workers=1, horizon={H}, progress=False,
+    make_env_fn=functools.partial(make_toy_collect_env, horizon={H}, min_len=3, max_len=9),
+    make_policy_fn=make_toy_policy, callback=die)
+"""
+
+
+def test_resume_after_sigkill(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    import toy_pixel_env
+
+    path = tmp_path / "ds"
+    script = _KILL_SCRIPT.format(toy_dir=os.path.dirname(toy_pixel_env.__file__), path=str(path), H=H)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=240)
+    assert proc.returncode == -9, proc.stderr[-2000:]
+    assert not path.exists()
+    assert json.loads((partial_path(path) / "progress.json").read_text())["episodes_done"] == 3
+    seen = []
+    _collect(path, num_episodes=5, callback=lambda d, t: seen.append(d))
+    assert seen == [4, 5]
+    ref_steps, ref_meta = load_dataset(_collect(tmp_path / "ref", num_episodes=5))
+    steps, meta = load_dataset(path)
+    assert torch.equal(meta["lengths"], ref_meta["lengths"]) and (steps == ref_steps).all()
