@@ -79,7 +79,8 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
 
 
 def test_parallel_workers(tmp_path):
-    steps, meta = load_dataset(_collect(tmp_path / "par", num_episodes=3, num_workers=2))
+    # fork: the workers need not re-import torch (spawn and pickling are covered in tests/transforms)
+    steps, meta = load_dataset(_collect(tmp_path / "par", num_episodes=3, num_workers=2, mp_start_method="fork"))
     assert steps.batch_size == (3, H) and meta["config"]["chunk_size"] == 2
     _check_episodes(steps, meta["lengths"])
     # different workers and chunks got different seeds

@@ -151,6 +151,7 @@ def collect_expert_dataset(
     callback: Callable[[int, int], None] | None = None,
     make_env_fn: Callable[[], Any] | None = None,
     make_policy_fn: Callable[[int | None], TensorDictModuleBase] | None = None,
+    mp_start_method: str | None = None,
 ) -> Path:
     """Collects ``num_episodes`` expert episodes of ``task`` into a dataset directory at ``path``.
 
@@ -178,6 +179,7 @@ def collect_expert_dataset(
         make_env_fn: builds one TorchRL env (default: ``trakdis.envs.make_env`` with the arguments
             above); must be picklable when ``num_workers > 1``.
         make_policy_fn: builds the policy from a seed (default: ``ExpertPolicy(task, noise, seed)``).
+        mp_start_method: start method of the ``ParallelEnv`` workers (default: TorchRL's choice).
 
     Returns:
         The dataset path. Resume a killed collection by calling again with the same arguments.
@@ -245,7 +247,7 @@ def collect_expert_dataset(
     if chunks_done > 0:
         data = TensorDict.load_memmap(tmp / "data")
     if chunks_done < num_chunks:
-        env = ParallelEnv(W, env_fn) if W > 1 else env_fn()
+        env = ParallelEnv(W, env_fn, mp_start_method=mp_start_method) if W > 1 else env_fn()
         policy = _ReseedablePolicy(policy_fn)
         collector = Collector(
             env, policy, frames_per_batch=W * horizon, total_frames=-1, reset_at_each_iter=True,
