@@ -80,3 +80,13 @@ def test_replay_buffer_windows():
     sample = rb.sample()
     assert sample["state_estimate"].shape == (3, 6, 4)
     torch.testing.assert_close(sample["state_estimate"], t.encoder(sample["pixels"].flatten(0, 1)).unflatten(0, (3, 6)))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_encoder_on_other_device_cpu_env():
+    enc = TinyEncoder(out_dim=4).cuda()
+    env = TransformedEnv(make_toy_env(size=16), EncoderTransform(enc))
+    check_env_specs(env, seed=0)
+    td = env.rollout(3)
+    assert td["state_estimate"].device.type == "cpu"
+    torch.testing.assert_close(td["state_estimate"], enc(td["pixels"].cuda()).cpu())

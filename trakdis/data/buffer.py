@@ -255,12 +255,25 @@ class TrajectoryReplayBuffer:
         """
         if len(self) > 0:
             raise RuntimeError("TrajectoryReplayBuffer.load_offline: the buffer is not empty; load offline data first")
-        packed, lengths = self._pack(data, lengths)
-        valid = torch.arange(self.max_len).unsqueeze(0) < lengths.unsqueeze(1)
-        returns = (packed["reward"].squeeze(-1).double() * valid).sum(-1)
+        if data.batch_dims != 2:
+            raise ValueError(f"TrajectoryReplayBuffer: expected trajectories [N, T], got batch size {tuple(data.batch_size)}")
+        N, T = data.batch_size
+        if lengths is None:
+            mask = data.get("mask", None)
+            lengths = mask.sum(-1) if mask is not None else torch.full((N,), T)
+        lengths = torch.as_tensor(lengths, dtype=torch.long).reshape(N)
+        reward = _get(data, self.reward_key)
+        if reward is None:
+            raise KeyError(f"TrajectoryReplayBuffer: reward key {self.reward_key!r} not found in the offline data")
+        reward = torch.as_tensor(reward).reshape(N, T).double()
+        valid = torch.arange(T).unsqueeze(0) < lengths.unsqueeze(1)
+        returns = (reward * valid).sum(-1)
+        # select before packing: only the kept trajectories are read (the data may be memory-mapped
+        # and much larger than the buffer, e.g. 8000 episodes with pixels)
         order = torch.argsort(returns, descending=True, stable=True)[: self.capacity]
         order = order.flip(0)  # ascending return: the ring cursor meets the worst trajectories first
-        return self._write(packed[order], lengths[order], online=False)
+        packed, lengths = self._pack(data[order], lengths[order])
+        return self._write(packed, lengths, online=False)
 
     def add_trajectory(self, trajectory: TensorDictBase, length: int | None = None) -> int:
         """Adds one online trajectory ``[T]`` (e.g. a rollout/collector batch of one episode)."""
