@@ -49,6 +49,19 @@ def test_no_grad_chunking_and_train_mode():
     assert not enc.training
 
 
+def test_env_device_moves_do_not_touch_the_encoder():
+    enc = TinyEncoder(out_dim=4)
+    t = EncoderTransform(enc)
+    env = TransformedEnv(make_toy_env(size=16), t)
+    env.to("cpu")
+    t.to(torch.float64)
+    assert all(p.dtype == torch.float32 for p in enc.parameters())
+    assert t.encoder is enc and not any("conv" in k for k in t.state_dict())
+    t2 = pickle.loads(pickle.dumps(t))
+    pix = torch.randint(0, 256, (3, 16, 16, 3), dtype=torch.uint8)
+    torch.testing.assert_close(t2._apply_transform(pix), t._apply_transform(pix))
+
+
 def test_bad_encoder_output_is_reported():
     t = EncoderTransform(torch.nn.Flatten(0))
     with pytest.raises(RuntimeError, match="pixels"):

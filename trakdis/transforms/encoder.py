@@ -31,6 +31,12 @@ class EncoderTransform(ObservationTransform):
     ``SerialEnv``/``ParallelEnv``; it pickles with its encoder), a collector, and a replay buffer
     (windows ``[B, K, H, W, 3]`` -> ``[B, K, D]``).
 
+    The encoder is deliberately *not* registered as a submodule: ``TransformedEnv`` moves its
+    transforms to the env's device (``transform.to(env.device)``), which would silently pull a GPU
+    encoder onto the CPU of a CPU env. It therefore stays where you put it (``encoder.to(...)`` or
+    ``device=``), and it is not part of the transform's ``state_dict`` (it is frozen; save it
+    separately). It is pickled with the transform.
+
     The output spec is ``Unbounded(shape=[*B, D])``; ``D`` and the dtype come from ``out_dim``/
     ``dtype`` or, when not given, from one dry run of the encoder on a zero image of the input spec.
 
@@ -43,6 +49,7 @@ class EncoderTransform(ObservationTransform):
         dtype: output dtype (default: the encoder's output dtype, float32 in practice).
         max_batch: at most this many images per encoder call (bounds memory on long windows).
         freeze: set ``requires_grad_(False)`` on the encoder (default True).
+        device: if given, the encoder is moved there once, at construction.
     """
 
     def __init__(
@@ -54,11 +61,14 @@ class EncoderTransform(ObservationTransform):
         dtype: torch.dtype | None = None,
         max_batch: int = 4096,
         freeze: bool = True,
+        device: torch.device | str | None = None,
     ):
         if not isinstance(encoder, nn.Module):
             raise TypeError(f"EncoderTransform: encoder must be an nn.Module, got {type(encoder).__name__}")
         super().__init__(in_keys=[in_key], out_keys=[out_key])
-        self.encoder = encoder
+        if device is not None:
+            encoder = encoder.to(device)
+        object.__setattr__(self, "_encoder", encoder)  # not a submodule: see the class docstring
         if freeze:
             encoder.requires_grad_(False)
         encoder.eval()
@@ -72,6 +82,10 @@ class EncoderTransform(ObservationTransform):
         super().train(mode)
         self.encoder.eval()  # frozen: never switch dropout/batch-norm to training behaviour
         return self
+
+    @property
+    def encoder(self) -> nn.Module:
+        return self._encoder
 
     @property
     def in_key(self) -> NestedKey:
