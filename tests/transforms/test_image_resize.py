@@ -44,6 +44,15 @@ def test_layouts_and_batch_shapes(dtype):
     assert (ImageResize(size=8)._apply_transform(const) == 77).all()
 
 
+def test_as_replay_buffer_transform_on_windows():
+    from tensordict import TensorDict
+
+    td = TensorDict({"pixels": torch.randint(0, 256, (4, 3, 32, 32, 3), dtype=torch.uint8)}, [4, 3])
+    out = ImageResize(size=16)(td.clone())
+    assert out["pixels"].shape == (4, 3, 16, 16, 3)
+    torch.testing.assert_close(out["pixels"], resize_images(td["pixels"], (16, 16)))
+
+
 def test_bounded_spec_keeps_bounds():
     spec = Bounded(low=0, high=255, shape=(2, 20, 20, 3), dtype=torch.uint8)
     out = ImageResize(size=5).transform_observation_spec(spec)

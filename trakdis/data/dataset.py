@@ -317,7 +317,7 @@ def collect_expert_dataset(
         "collect_seconds_last_run": time.perf_counter() - t_start,
     }
     _write_json_atomic(tmp / "meta.json", meta)
-    progress_file.unlink()
+    # progress.json stays until the rename, so a kill at any point leaves a resumable .partial
     if path.exists():  # overwrite=True: move the old dataset away only now that the new one is complete
         trash = path.with_name(path.name + ".old")
         if trash.exists():
@@ -327,6 +327,7 @@ def collect_expert_dataset(
         shutil.rmtree(trash)
     else:
         os.rename(tmp, path)
+    (path / "progress.json").unlink()
     return path
 
 
