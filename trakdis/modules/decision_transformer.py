@@ -20,7 +20,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
-from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
+from trakdis.modules.transformer import CausalTransformer, Dropout, KVCache, TransformerConfig
 
 __all__ = ["DTConfig", "DecisionTransformer", "DTActor", "make_dt_actor", "find_dt_actor"]
 
@@ -107,7 +107,7 @@ class DecisionTransformer(nn.Module):
         self.embed_action = nn.Linear(config.action_dim, d)
         self.embed_timestep = nn.Embedding(config.max_timestep, d)
         self.embed_ln = nn.LayerNorm(d)
-        self.embed_drop = nn.Dropout(config.dropout)
+        self.embed_drop = Dropout(config.dropout)
         self.transformer = CausalTransformer(config.transformer_config())
         for lin in (self.embed_return, self.embed_state, self.embed_action):
             nn.init.normal_(lin.weight, std=0.02)
@@ -184,8 +184,7 @@ class DecisionTransformer(nn.Module):
         tokens = self.embed_step(observation, action, return_to_go, timestep.long())  # [B, K, 3, D]
         tokens = self.embed_drop(self.embed_ln(tokens.reshape(b, TOKENS_PER_STEP * k, -1)))
         token_mask = None if mask is None else mask.repeat_interleave(TOKENS_PER_STEP, dim=-1)
-        h = self.transformer(tokens, token_mask)
-        h = h.view(b, k, TOKENS_PER_STEP, -1)[:, :, 1]  # outputs at the state tokens
+        h = self.transformer(tokens, token_mask, output_positions=slice(1, None, TOKENS_PER_STEP))  # state tokens
         return h.reshape(*lead, k, h.shape[-1])
 
     def forward_cached(

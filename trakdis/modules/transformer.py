@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["TransformerConfig", "CausalSelfAttention", "TransformerBlock", "CausalTransformer", "KVCache"]
+__all__ = ["TransformerConfig", "CausalSelfAttention", "TransformerBlock", "CausalTransformer", "KVCache", "Dropout", "fast_dropout"]
 
 _ACTIVATIONS = {"gelu": nn.GELU, "relu": nn.ReLU, "gelu_tanh": lambda: nn.GELU(approximate="tanh")}
 
@@ -62,6 +62,60 @@ class TransformerConfig:
         for name in ("dropout", "attn_dropout"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"{name}={getattr(self, name)} must be in [0, 1)")
+
+
+def _keep_mask(shape, p: float, device) -> tuple[torch.Tensor, float]:
+    """Bernoulli keep-mask from 16-bit uniform integers; returns (mask, keep probability)."""
+    n = math.prod(shape)
+    # int64 random_() draws from [0, 2^63): the low 48 bits are uniform, 3 x 16 bits per draw.
+    words = torch.empty((n + 2) // 3, dtype=torch.int64, device=device).random_()
+    bits = words.view(torch.int16).view(-1, 4)[:, :3].reshape(-1)[:n].view(shape)
+    threshold = round(p * 65536) - 32768
+    return bits >= threshold, 1.0 - (threshold + 32768) / 65536
+
+
+def fast_dropout(x: torch.Tensor, p: float, training: bool = True) -> torch.Tensor:
+    """Inverted dropout; on the CPU it draws 16-bit random integers instead of ``bernoulli_``.
+
+    PyTorch's CPU dropout is bound by its random number generation (~10x slower than drawing
+    raw 64-bit integers and slicing them into three 16-bit uniforms). ``p`` is quantised to
+    multiples of 1/65536 and the output is rescaled by the exact keep probability, so it stays
+    unbiased. On other devices this is ``torch.nn.functional.dropout``.
+    """
+    if not training or p == 0.0:
+        return x
+    if x.device.type != "cpu":
+        return F.dropout(x, p, True)
+    keep, q = _keep_mask(x.shape, p, x.device)
+    return torch.where(keep, x, 0.0).mul_(1.0 / q)
+
+
+class Dropout(nn.Dropout):
+    """``nn.Dropout`` with the fast CPU path of :func:`fast_dropout`."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return fast_dropout(x, self.p, self.training)
+
+
+def attention(q, k, v, attn_mask: torch.Tensor | None, dropout_p: float) -> torch.Tensor:
+    """``scaled_dot_product_attention`` (causal when ``attn_mask`` is None).
+
+    With attention dropout on a CPU, SDPA falls back to its math kernel with PyTorch's slow
+    dropout (measured ~2x slower fwd+bwd than without dropout); there the same math is written
+    out with the cheaper dropout of :func:`fast_dropout` (the rescaling is applied to the
+    smaller ``[.., T_q, head_dim]`` output instead of the ``[.., T_q, T_k]`` weights).
+    """
+    if dropout_p == 0.0 or q.device.type != "cpu":
+        if attn_mask is None:
+            return F.scaled_dot_product_attention(q, k, v, dropout_p=dropout_p, is_causal=True)
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=dropout_p)
+    if attn_mask is None:
+        attn_mask = torch.ones(q.shape[-2], k.shape[-2], dtype=torch.bool, device=q.device).tril_()
+    bias = torch.zeros(attn_mask.shape, dtype=q.dtype, device=q.device).masked_fill_(~attn_mask, float("-inf"))
+    scores = torch.matmul(q * (1.0 / math.sqrt(q.shape[-1])), k.transpose(-2, -1)).add_(bias)
+    keep, keep_prob = _keep_mask(scores.shape, dropout_p, q.device)
+    weights = torch.where(keep, scores.softmax(-1), 0.0)
+    return torch.matmul(weights, v).mul_(1.0 / keep_prob)
 
 
 class KVCache:
@@ -110,15 +164,30 @@ class CausalSelfAttention(nn.Module):
         b, h, t, hd = y.shape
         return self.proj(y.transpose(1, 2).reshape(b, t, h * hd))
 
-    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor | None = None) -> torch.Tensor:
-        """``x``: ``[B, T, D]``; ``attn_mask``: bool ``[B, 1, T, T]`` (True = may attend) or None (causal)."""
-        q, k, v = self._split(x)
+    def forward(
+        self, x: torch.Tensor, attn_mask: torch.Tensor | None = None, query: slice | None = None
+    ) -> torch.Tensor:
+        """``x``: ``[B, T, D]``; ``attn_mask``: bool ``[B, 1, T, T]`` (True = may attend) or None (causal).
+
+        ``query``: compute the outputs only at positions ``x[:, query]`` (keys/values still use
+        all positions); the result is then ``[B, T_query, D]``.
+        """
         p = self.attn_dropout if self.training else 0.0
+        if query is None:
+            q, k, v = self._split(x)
+            return self._merge(attention(q, k, v, attn_mask, p))
+        b, t, d = x.shape
+        w, bias = self.qkv.weight, self.qkv.bias
+        xq = x[:, query]
+        q = F.linear(xq, w[:d], None if bias is None else bias[:d])
+        q = q.view(b, -1, self.n_head, self.head_dim).transpose(1, 2)
+        k, v = F.linear(x, w[d:], None if bias is None else bias[d:]).view(b, t, 2, self.n_head, self.head_dim).permute(2, 0, 3, 1, 4)
         if attn_mask is None:
-            y = F.scaled_dot_product_attention(q, k, v, dropout_p=p, is_causal=True)
+            pos = torch.arange(t, device=x.device)
+            attn_mask = pos[None, :] <= pos[query][:, None]  # causal rows of the selected queries
         else:
-            y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=p)
-        return self._merge(y)
+            attn_mask = attn_mask[:, :, query]
+        return self._merge(attention(q, k, v, attn_mask, p))
 
     def forward_cached(
         self, x: torch.Tensor, k_cache: torch.Tensor, v_cache: torch.Tensor, slots: torch.Tensor, attn_mask: torch.Tensor
@@ -128,8 +197,7 @@ class CausalSelfAttention(nn.Module):
         k_cache[:, :, slots] = k
         v_cache[:, :, slots] = v
         p = self.attn_dropout if self.training else 0.0
-        y = F.scaled_dot_product_attention(q, k_cache, v_cache, attn_mask=attn_mask, dropout_p=p)
-        return self._merge(y)
+        return self._merge(attention(q, k_cache, v_cache, attn_mask, p))
 
 
 class TransformerBlock(nn.Module):
@@ -146,10 +214,12 @@ class TransformerBlock(nn.Module):
             _ACTIVATIONS[config.activation](),
             nn.Linear(config.mlp_ratio * d, d, bias=config.bias),
         )
-        self.drop = nn.Dropout(config.dropout)
+        self.drop = Dropout(config.dropout)
 
-    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor | None = None) -> torch.Tensor:
-        x = x + self.drop(self.attn(self.ln1(x), attn_mask))
+    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor | None = None, query: slice | None = None) -> torch.Tensor:
+        """See :meth:`CausalSelfAttention.forward`; with ``query`` the block outputs ``x[:, query]`` only."""
+        y = self.attn(self.ln1(x), attn_mask, query)
+        x = (x if query is None else x[:, query]) + self.drop(y)
         return x + self.drop(self.mlp(self.ln2(x)))
 
     def forward_cached(self, x, k_cache, v_cache, slots, attn_mask) -> torch.Tensor:
@@ -196,13 +266,21 @@ class CausalTransformer(nn.Module):
         mask = causal & key_padding_mask[:, None, None, :]
         return mask | torch.eye(t, dtype=torch.bool, device=key_padding_mask.device)
 
-    def forward(self, x: torch.Tensor, key_padding_mask: torch.Tensor | None = None) -> torch.Tensor:
-        """``x``: ``[B, T, D]``; ``key_padding_mask``: bool ``[B, T]`` or None (no padding)."""
+    def forward(
+        self, x: torch.Tensor, key_padding_mask: torch.Tensor | None = None, output_positions: slice | None = None
+    ) -> torch.Tensor:
+        """``x``: ``[B, T, D]``; ``key_padding_mask``: bool ``[B, T]`` or None (no padding).
+
+        ``output_positions``: if given (a slice of token positions), only those outputs are
+        computed and returned (``[B, T_out, D]``): the last block then skips the queries, MLP
+        and LayerNorm of every other token (the Decision Transformer needs only its state tokens).
+        """
         if x.dim() != 3 or x.shape[-1] != self.config.embed_dim:
             raise ValueError(f"expected tokens of shape [B, T, {self.config.embed_dim}], got {tuple(x.shape)}")
         attn_mask = None if key_padding_mask is None else self.build_attn_mask(key_padding_mask)
-        for block in self.blocks:
-            x = block(x, attn_mask)
+        last = len(self.blocks) - 1
+        for i, block in enumerate(self.blocks):
+            x = block(x, attn_mask, output_positions if i == last else None)
         return self.ln_f(x)
 
     def forward_cached(

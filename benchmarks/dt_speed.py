@@ -1,0 +1,193 @@
+"""Decision Transformer speed: training-step throughput and per-step acting latency.
+
+Compares ``trakdis.modules`` (SDPA transformer, ``DTLoss``, ``DTActingPolicy``) with TorchRL's
+``OnlineDTActor`` (HuggingFace GPT-2 backend) + ``OnlineDTLoss`` at the same size (width, depth,
+heads, MLP width 4x, dropout), at context lengths 5, 30 and 100, on the CPU and on CUDA when
+available. All ratios printed come from this one run.
+
+* training step: a batch of ``--batch`` windows, forward (log-likelihood + 1-sample entropy),
+  backward and an Adam step; reported in samples (windows) per second.
+* acting: per-step latency for ``--envs`` environments at steps 10, 100 and 1000 of one long
+  episode (median over 10 consecutive steps around each). TorchRL has no stateful acting
+  wrapper; its per-step cost is one forward over the last-K window (what
+  ``DecisionTransformerInferenceWrapper`` does), measured on a ready-made window.
+
+Needs ``pip install transformers`` for the TorchRL part (skipped with a message otherwise).
+
+    python benchmarks/dt_speed.py                 # small model on the CPU (a few minutes)
+    python benchmarks/dt_speed.py --size paper    # embedding 256, 10 layers, 16 heads
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import statistics
+import time
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.objectives import OnlineDTLoss
+
+from trakdis.modules import DTActingPolicy, DTConfig, make_dt_actor
+from trakdis.objectives import DTLoss
+
+STATE_DIM, ACTION_DIM = 18, 8  # ClothFold
+HAS_TRANSFORMERS = importlib.util.find_spec("transformers") is not None
+
+
+def sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def make_config(size: str, k: int) -> DTConfig:
+    if size == "paper":
+        return DTConfig.paper(STATE_DIM, ACTION_DIM, context_len=k)
+    return DTConfig(STATE_DIM, ACTION_DIM, context_len=k)
+
+
+def make_torchrl_actor(cfg: DTConfig, device):
+    from torchrl.modules import DecisionTransformer, OnlineDTActor
+
+    tcfg = DecisionTransformer.DTConfig(
+        n_embd=cfg.embed_dim, n_layer=cfg.n_layer, n_head=cfg.n_head, n_inner=cfg.mlp_ratio * cfg.embed_dim,
+        activation="gelu", n_positions=1024, resid_pdrop=cfg.dropout, attn_pdrop=cfg.attn_dropout,
+    )
+    net = OnlineDTActor(STATE_DIM, ACTION_DIM, transformer_config=tcfg, device=device)
+    module = TensorDictModule(net, in_keys=["observation", "action", "return_to_go"], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module, in_keys=["loc", "scale"], out_keys=["action"], distribution_class=TanhNormal,
+        distribution_kwargs={"low": -1.0, "high": 1.0},
+        spec=Bounded(-1.0, 1.0, shape=(ACTION_DIM,), device=device),
+    )
+
+
+def batch_windows(b, k, device):
+    g = torch.Generator().manual_seed(0)
+    mask = torch.ones(b, k, dtype=torch.bool)
+    mask[: b // 4, : k // 2] = False  # a quarter of the windows left-padded
+    return TensorDict(
+        observation=torch.randn(b, k, STATE_DIM, generator=g),
+        action=torch.rand(b, k, ACTION_DIM, generator=g) * 1.8 - 0.9,
+        return_to_go=torch.randn(b, k, 1, generator=g),
+        timestep=torch.arange(k).expand(b, k).clone(),
+        mask=mask,
+        batch_size=[b, k],
+    ).to(device)
+
+
+def time_train(loss_module, loss_keys, td, device, steps, warmup=3):
+    opt = torch.optim.Adam(loss_module.parameters(), lr=1e-4)
+
+    def step():
+        out = loss_module(td)
+        total = sum(out[k] for k in loss_keys)
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+
+    for _ in range(warmup):
+        step()
+    sync(device)
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        step()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return td.shape[0] / statistics.median(times)
+
+
+@torch.no_grad()
+def time_acting(policy, n_envs, device, checkpoints=(10, 100, 1000)):
+    g = torch.Generator().manual_seed(1)
+    obs = torch.randn(n_envs, STATE_DIM, generator=g).to(device)
+    td = TensorDict(observation=obs, return_to_go=torch.zeros(n_envs, 1, device=device), batch_size=[n_envs], device=device)
+    last = max(checkpoints) + 10
+    times = []
+    for t in range(last):
+        td["step_count"] = torch.full((n_envs, 1), t, dtype=torch.long, device=device)
+        sync(device)
+        t0 = time.perf_counter()
+        policy(td)
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return {c: statistics.median(times[c : c + 10]) for c in checkpoints}
+
+
+@torch.no_grad()
+def time_window_forward(actor, td, device, steps=30):
+    for _ in range(3):
+        actor(td.clone())
+    sync(device)
+    times = []
+    for _ in range(steps):
+        x = td.clone()
+        t0 = time.perf_counter()
+        actor(x)
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def run_device(device, args):
+    print(f"\n=== device {device} | size {args.size} | batch {args.batch} | envs {args.envs} | threads {torch.get_num_threads()} ===")
+    if not HAS_TRANSFORMERS:
+        print("transformers is not installed: skipping TorchRL's DecisionTransformer (pip install transformers)")
+    for k in args.contexts:
+        cfg = make_config(args.size, k)
+        torch.manual_seed(0)
+        ours = make_dt_actor(cfg).to(device)
+        n_ours = sum(p.numel() for p in ours.parameters())
+        td = batch_windows(args.batch, k, device)
+        sps_ours = time_train(DTLoss(ours, lambda_entropy=0.1), ["loss_nll", "loss_entropy"], td, device, args.steps)
+        line = f"K={k:4d} train  trakdis {sps_ours:9.1f} samples/s ({n_ours / 1e6:.2f}M params)"
+        theirs = None
+        if HAS_TRANSFORMERS:
+            torch.manual_seed(0)
+            theirs = make_torchrl_actor(cfg, device)
+            n_theirs = sum(p.numel() for p in theirs.parameters())
+            sps_theirs = time_train(
+                OnlineDTLoss(theirs, alpha_init=0.1, fixed_alpha=True), ["loss_log_likelihood", "loss_entropy"], td, device, args.steps
+            )
+            line += f" | torchrl {sps_theirs:9.1f} samples/s ({n_theirs / 1e6:.2f}M params) | ratio {sps_ours / sps_theirs:5.2f}x"
+        print(line, flush=True)
+        ours.eval()
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            lat_by_mode = {}
+            for mode in ("kv_cache", "window"):
+                lat = lat_by_mode[mode] = time_acting(DTActingPolicy(ours, mode=mode), args.envs, device)
+                print(f"K={k:4d} act    trakdis {mode:8s} ms/step at step " + "  ".join(f"{c}: {v * 1e3:7.3f}" for c, v in lat.items()), flush=True)
+            if theirs is not None:
+                theirs.eval()
+                win = batch_windows(args.envs, k, device).exclude("timestep", "mask")
+                lat_t = time_window_forward(theirs, win, device)
+                print(
+                    f"K={k:4d} act    torchrl  window ms/step (any step) {lat_t * 1e3:7.3f} | torchrl / trakdis at step 1000: "
+                    f"kv_cache {lat_t / lat_by_mode['kv_cache'][1000]:5.2f}x, window {lat_t / lat_by_mode['window'][1000]:5.2f}x",
+                    flush=True,
+                )
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--size", choices=["small", "paper"], default="small")
+    p.add_argument("--contexts", type=int, nargs="+", default=[5, 30, 100])
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--envs", type=int, default=1)
+    p.add_argument("--steps", type=int, default=10, help="timed training steps per measurement")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--devices", nargs="+", default=None, help="default: cpu, plus cuda when available")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    devices = args.devices or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    for dev in devices:
+        run_device(torch.device(dev), args)
+
+
+if __name__ == "__main__":
+    main()
