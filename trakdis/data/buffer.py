@@ -322,6 +322,8 @@ class TrajectoryReplayBuffer:
         steps = info["index"][1]
         B, K = mask.shape
         # hindsight return-to-go from the stored rewards of the sampled trajectories: O(B * max_len)
+        # (TorchRL storages have no public accessor for one field of the stored TensorDict, and
+        # storage.get(traj) would also gather every other key, pixels included, for whole trajectories)
         rewards = self.storage._storage.get("reward")[traj]  # [B, max_len, 1]
         valid = torch.arange(self.max_len).unsqueeze(0) < self.sampler.lengths[traj].unsqueeze(1)
         rtg = hindsight_return_to_go(rewards, valid, rtg_scale=self.rtg_scale)
