@@ -62,8 +62,6 @@ class EvaluateConfig(RunConfig):
 def main(argv=None) -> pd.DataFrame:
     run = Run.start("evaluate", EvaluateConfig, argv, description=__doc__)
     cfg = run.cfg
-    if cfg.threads == 0:
-        torch.set_num_threads(1)
     handle = load_policy(cfg.policy, task=cfg.task, horizon=cfg.horizon, expert_noise=cfg.expert_noise, device=cfg.device)
     name = handle.kind if handle.kind == "expert" else f"{handle.kind} ({handle.source})"
     run.print(f"evaluating {name} on {handle.task} ({cfg.split} split), {cfg.trials} trials x "

@@ -57,8 +57,8 @@ class RunConfig:
     """seed of Python, NumPy, torch and the environments"""
     device: str = "cpu"
     """torch device of the models (environments stay on the CPU)"""
-    threads: int = 0
-    """torch CPU threads (0: leave torch's default)"""
+    threads: int = 1
+    """torch CPU threads (0: torch's default, all cores; 1 avoids oversubscribing a shared CPU)"""
     stop_after: Optional[int] = None
     """stop (checkpoint written) once the recipe's main counter reaches this value; for tests and
     time-sliced runs, continue with --resume"""
@@ -101,7 +101,8 @@ class Run:
         directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=cfg.resume)
         saved = directory / "config.json"
         if cfg.resume and saved.exists():
-            cfg = apply_overrides(load_config(cfg_cls, saved), explicit)
+            # --stop-after belongs to one invocation: a resumed run never inherits it.
+            cfg = apply_overrides(load_config(cfg_cls, saved), {"stop_after": None, **explicit})
         cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
         save_config(cfg, saved)
         run = cls(recipe, cfg, directory, explicit)

@@ -1,0 +1,248 @@
+"""The TraKDis student: a Decision Transformer on encoder(image), distilled from the teacher.
+
+    python recipes/distill.py                                  # latest teacher + latest encoder
+    python recipes/distill.py --teacher runs/online_dt/A --encoder runs/train_encoder/B
+    python recipes/distill.py --no-weight-copy                 # ablation No-Pretrain
+    python recipes/distill.py --no-distill                     # ablation No-Distill (imitate the expert data)
+    python recipes/distill.py --state-noise 1e-3               # train with noisy state estimates
+
+1. The student has the teacher's architecture and starts as a copy of its weights
+   (``--no-weight-copy``: fresh weights); it reads ``"state_estimate"`` = encoder(pixels).
+   Teacher and encoder are frozen.
+2. Each round, ``--episodes-per-round`` episodes are rolled out (by the student by default,
+   DAgger-style, or by the teacher with ``--act teacher``) on the train split; every step keeps
+   both the true state and the encoder's estimate, so teacher and student see the same episodes.
+3. ``--updates-per-round`` updates of the distillation loss: the student's negative
+   log-likelihood of the teacher's (deterministic) action on the same windows, the teacher
+   reading the true state. ``--no-distill`` replaces the teacher's labels with the expert
+   dataset's actions (student DT on encoder(images) of the expert data, loss = DT NLL).
+4. Evaluation on the eval split (mean action) before training, every ``--eval-every`` rounds and
+   at the end; the teacher is evaluated on the same episodes for reference.
+
+Writes ``runs/distill/<name>/`` with ``config.json``, ``log.csv``, ``curves.png``,
+``checkpoint.pt`` (resume) and ``policy.pt`` (student + encoder, for evaluate.py).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import torch
+
+from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, rng_state, set_rng_state
+from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
+from trakdis.utils.evaluation import run_episodes
+from trakdis.utils.logger import latest_run_dir
+from trakdis.utils.policies import PolicyHandle, load_encoder, load_policy, save_policy
+from trakdis.utils.progress import progress
+from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.training import Updater, episode_to_trajectory, mean_metrics
+from dataclasses import field
+
+
+@dataclass
+class DistillConfig(RunConfig):
+    """Distil the privileged teacher into an image-based student."""
+
+    teacher: str = "latest"
+    """teacher policy file or online_dt run directory ('latest': the newest run under <root>/online_dt)"""
+    encoder: str = "latest"
+    """encoder.pt or train_encoder run directory ('latest': the newest run under <root>/train_encoder)"""
+    weight_copy: bool = True
+    """initialise the student with the teacher's weights (--no-weight-copy: ablation No-Pretrain)"""
+    distill: bool = True
+    """learn from the teacher's actions (--no-distill: imitate the expert dataset instead)"""
+    state_noise: float = 0.0
+    """std of Gaussian noise added to the estimated state while training (robustness)"""
+    act: Literal["student", "teacher"] = "student"
+    """who acts in the training rollouts"""
+    rounds: int = 10
+    """rounds of (roll out, update); --no-distill: rounds of updates only"""
+    episodes_per_round: int = 2
+    """episodes rolled out per round"""
+    updates_per_round: int = 50
+    """updates per round"""
+    batch_size: int = 64
+    """windows per update"""
+    optimizer: Literal["adamw", "adam", "lamb"] = "adamw"
+    """optimiser (the paper: lamb)"""
+    lr: float = 1e-4
+    """learning rate"""
+    weight_decay: float = 1e-4
+    """weight decay"""
+    warmup_steps: int = 20
+    """learning-rate warm-up (updates)"""
+    grad_clip: float = 0.25
+    """gradient-norm clip (0: off)"""
+    kl_coef: float = 0.0
+    """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
+    buffer_capacity: int = 200
+    """trajectories kept for distillation"""
+    data: DataConfig = field(default_factory=DataConfig)
+    """expert dataset for --no-distill"""
+    eval_episodes: int = 10
+    """evaluation episodes (eval split)"""
+    eval_every: int = 5
+    """evaluate every N rounds (and before training and at the end)"""
+    eval_teacher: bool = True
+    """also evaluate the teacher on the evaluation episodes"""
+    num_envs: int = 2
+    """environments stepped together"""
+    parallel: bool = False
+    """step them in subprocesses (ParallelEnv)"""
+
+
+PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,
+                     "eval_every": 10, "updates_per_round": 100, "batch_size": 256}}
+
+
+def _resolve(spec: str, root: str, recipe: str, filename: str) -> Path:
+    if spec != "latest":
+        return Path(spec)
+    run = latest_run_dir(root, recipe)
+    if run is None or not (run / filename).exists():
+        raise FileNotFoundError(f"no {filename} under {Path(root) / recipe}: run recipes/{recipe}.py first "
+                                f"or pass --{'teacher' if recipe == 'online_dt' else 'encoder'} PATH")
+    return run / filename
+
+
+def main(argv=None) -> dict:
+    run = Run.start("distill", DistillConfig, argv, presets=PRESETS, description=__doc__)
+    cfg = run.cfg
+    from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
+    from trakdis.objectives import DistillationLoss, DTLoss
+    from trakdis.transforms import StateNoise
+
+    teacher = load_policy(_resolve(cfg.teacher, cfg.root, "online_dt", "policy.pt"), device=cfg.device)
+    if teacher.kind != "teacher":
+        raise CheckpointError(f"{teacher.source} holds a {teacher.kind}, not a teacher")
+    enc_path = _resolve(cfg.encoder, cfg.root, "train_encoder", "encoder.pt")
+    encoder, enc_file = load_encoder(enc_path)
+    if enc_file["task"] != teacher.task:
+        raise ValueError(f"encoder {enc_path} is for {enc_file['task']}, teacher {teacher.source} for {teacher.task}")
+    task, horizon = teacher.task, teacher.horizon
+    dt_cfg = DTConfig(**load_checkpoint(teacher.source)["dt_config"])
+    student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=cfg.device)
+    if cfg.weight_copy:
+        copy_teacher_weights(student, teacher.actor)
+    teacher.actor.eval().requires_grad_(False)
+    run.print(f"{task}: teacher {teacher.source}, encoder {enc_path} (val MAE {enc_file.get('val_mae', float('nan')):.4f}), "
+              f"weight copy {cfg.weight_copy}, {'distillation' if cfg.distill else 'expert imitation (--no-distill)'}")
+
+    if cfg.distill:
+        loss = DistillationLoss(student, teacher.actor, kl_coef=cfg.kl_coef)
+        obs_keys = ("state", "state_estimate")
+    else:
+        loss = DTLoss(student, lambda_entropy=0.0)
+        obs_keys = ("state_estimate",)
+    updater = Updater(loss, optimizer=cfg.optimizer, lr=cfg.lr, weight_decay=cfg.weight_decay,
+                      warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None)
+    buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed)
+    counters = {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}
+
+    state = run.resume_state()
+    if state is not None:
+        updater.load_state_dict(state["updater"])
+        buffer.load_state_dict(state["buffer"])
+        counters.update(state["counters"])
+    elif not cfg.distill:
+        # No-Distill: the expert dataset's images through the frozen encoder.
+        path = ensure_dataset(cfg.data, task=task, horizon=horizon, seed=cfg.seed, pixels=True, log=run.print,
+                              progress=cfg.progress)
+        data, lengths = load_trajectories(path, keys=("pixels", "action", "reward"))
+        with torch.no_grad():
+            pixels = data.get("pixels")
+            est = torch.cat([encoder(torch.as_tensor(pixels[i : i + 16])) for i in range(0, data.shape[0], 16)])
+        offline = data.select("action", "reward").to_tensordict()
+        offline.set("state_estimate", est)
+        buffer.load_offline(offline, lengths)
+        run.print(f"--no-distill: {data.shape[0]} expert episodes from {path}")
+
+    noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"]) if cfg.state_noise > 0 else None
+    student_handle = PolicyHandle("student", task, horizon, actor=student, encoder=encoder,
+                                  observation_key="state_estimate", target_return=teacher.target_return,
+                                  rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs)
+
+    def evaluate(handle, env, tag, prefix="eval"):
+        was = student.training
+        res = run_episodes(env, handle.make_policy(), cfg.eval_episodes, max_steps=horizon, desc=f"eval ({tag})")
+        student.train(was)
+        s = res.summary()
+        run.log(counters["updates"], {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"]})
+        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} ({s['n']} eval episodes)")
+        return s["mean"]
+
+    def checkpoint():
+        run.save_checkpoint({"updater": updater.state_dict(), "buffer": buffer.state_dict(), "counters": counters,
+                             "rng": rng_state()}, step=counters["updates"])
+
+    eval_seed = cfg.seed + 10_000
+    eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", seed=eval_seed, parallel=cfg.parallel)
+    act_handle = student_handle if cfg.act == "student" else PolicyHandle(
+        "teacher", task, horizon, actor=teacher.actor, encoder=encoder, observation_key="state",
+        target_return=teacher.target_return, rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs)
+    # Rollouts carry both the true state and the encoder's (noisy) estimate.
+    roll_env = act_handle.make_env(num_envs=cfg.num_envs, split="train", seed=cfg.seed + 1000 * (counters["rounds"] + 1),
+                                   state_noise=cfg.state_noise, parallel=cfg.parallel) if cfg.distill else None
+    if state is not None:  # after building the envs, so the RNG streams continue exactly
+        set_rng_state(state["rng"])
+    try:
+        if cfg.eval_teacher and counters["teacher_eval"] is None:
+            t_env = teacher.make_env(num_envs=cfg.num_envs, split="eval", seed=eval_seed, parallel=cfg.parallel)
+            try:
+                counters["teacher_eval"] = evaluate(teacher, t_env, "teacher", prefix="eval_teacher")
+            finally:
+                t_env.close()
+        if counters["initial_eval"] is None:
+            counters["initial_eval"] = evaluate(student_handle, eval_env, "student before training")
+        while counters["rounds"] < cfg.rounds:
+            if cfg.distill:
+                res = run_episodes(roll_env, act_handle.make_policy(), cfg.episodes_per_round, max_steps=horizon,
+                                   deterministic=True, keep_episodes=True, desc="rollout")
+                for ep in res.episodes:
+                    buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action")))
+                rollout_metrics = {"rollout/normalized_performance": float(res.final_performance.mean())}
+            else:
+                rollout_metrics = {}
+            student.train()
+            history = []
+            for _ in progress(range(cfg.updates_per_round), desc=f"round {counters['rounds'] + 1}"):
+                batch = buffer.sample(cfg.batch_size)
+                if noise is not None and not cfg.distill:
+                    batch = noise(batch)
+                history.append(updater.step(batch.to(cfg.device)))
+            counters["rounds"] += 1
+            counters["updates"] += cfg.updates_per_round
+            run.log(counters["updates"], {**mean_metrics(history), **rollout_metrics, "round": counters["rounds"]})
+            key = "train/loss_distill" if cfg.distill else "train/loss_nll"
+            run.print(f"round {counters['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
+                      + (f", rollout normalized performance {rollout_metrics['rollout/normalized_performance']:.3f}"
+                         if rollout_metrics else ""))
+            if counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.rounds:
+                evaluate(student_handle, eval_env, f"student after round {counters['rounds']}")
+            checkpoint()
+            if run.should_stop(counters["rounds"]) and counters["rounds"] < cfg.rounds:
+                run.print(f"stopping after round {counters['rounds']} (--stop-after); continue with --resume")
+                return counters
+        final = evaluate(student_handle, eval_env, "student after distillation")
+    finally:
+        eval_env.close()
+        if roll_env is not None:
+            roll_env.close()
+    counters["final_eval"] = final
+    save_policy(run.dir / "policy.pt", kind="student", task=task, horizon=horizon, dt_config=dt_cfg, actor=student,
+                observation_key="state_estimate", target_return=teacher.target_return, rtg_scale=teacher.rtg_scale,
+                env_kwargs=teacher.env_kwargs, encoder_file=enc_file,
+                extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
+                       "state_noise": cfg.state_noise})
+    checkpoint()
+    run.finish()
+    run.print(f"eval normalized performance: teacher {counters['teacher_eval'] if counters['teacher_eval'] is not None else float('nan'):.3f}, "
+              f"student before {counters['initial_eval']:.3f}, after {final:.3f} ({cfg.eval_episodes} episodes)")
+    return counters
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,265 @@
+"""The privileged teacher: a Decision Transformer on the true reduced state, trained offline on
+expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in TraKDis.
+
+    python recipes/online_dt.py                       # ClothFold, about 10 minutes on 2 CPU cores
+    python recipes/online_dt.py --preset paper        # the paper's model and optimiser (slow on a CPU)
+    python recipes/online_dt.py --resume              # continue the latest run after a kill
+
+1. Expert data: ``--dataset DIR``, or ``datasets/<task>_<N>ep_h<horizon>`` collected with the scripted
+   expert (``--dataset-episodes N``, action noise ``--expert-noise``) if it does not exist yet.
+2. Offline pretraining: ``--offline-updates`` updates on windows of the trajectory buffer.
+3. Online fine-tuning: ``--online-rounds`` rounds of [roll out ``--episodes-per-round`` episodes
+   with sampled actions and the exploration return-to-go ``--exploration-rtg``, add them to the
+   buffer (which drops the oldest / lowest-return trajectories first), ``--updates-per-round``
+   updates].
+4. Evaluation (mean action, eval split, return-to-go ``--eval-rtg``) after offline pretraining,
+   every ``--eval-every`` rounds and at the end; the expert is evaluated on the same episodes.
+
+Writes ``runs/online_dt/<name>/``: ``config.json``, ``log.csv``, ``curves.png``,
+``checkpoint.pt`` (resume), ``policy_offline.pt`` and ``policy.pt`` (for evaluate.py/distill.py).
+"""
+from __future__ import annotations
+
+import time
+
+import sys
+from dataclasses import dataclass, field
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+
+from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
+from trakdis.utils.checkpoint import rng_state, set_rng_state
+from trakdis.utils.evaluation import run_episodes
+from trakdis.utils.policies import PolicyHandle, load_policy, save_policy
+from trakdis.utils.progress import progress
+from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.training import ModelConfig, Updater, episode_to_trajectory, mean_metrics
+
+Task = Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
+
+
+@dataclass
+class OnlineDTConfig(RunConfig):
+    """Teacher: offline Decision Transformer pretraining on expert data, then online fine-tuning."""
+
+    task: Task = "ClothFold"
+    """cloth task"""
+    horizon: int = 100
+    """episode length"""
+    data: DataConfig = field(default_factory=DataConfig)
+    """expert dataset"""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Decision Transformer"""
+    optimizer: Literal["adamw", "adam", "lamb"] = "adamw"
+    """optimiser (the paper: lamb)"""
+    lr: float = 1e-3
+    """learning rate"""
+    weight_decay: float = 1e-4
+    """weight decay"""
+    warmup_steps: int = 100
+    """linear learning-rate warm-up (updates)"""
+    grad_clip: float = 0.25
+    """gradient-norm clip (0: off)"""
+    batch_size: int = 64
+    """windows per update"""
+    lambda_entropy: float = 0.1
+    """entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature"""
+    learn_temperature: bool = False
+    """learn the entropy temperature toward a target entropy of -action_dim (Online DT)"""
+    rtg_scale: float = 1.0
+    """return-to-go scale (rewards and targets are multiplied by it)"""
+    buffer_capacity: int = 1000
+    """trajectories in the replay buffer (Online DT: 1000)"""
+    offline_updates: int = 1500
+    """offline pretraining updates"""
+    online_rounds: int = 8
+    """online rounds (roll out, add to the buffer, update)"""
+    episodes_per_round: int = 4
+    """episodes rolled out per online round (sampled actions, train split)"""
+    updates_per_round: int = 150
+    """updates after each online rollout"""
+    exploration_rtg: Optional[float] = None
+    """initial return-to-go of the online rollouts (default: the best return in the buffer, halved
+    towards 0, i.e. a more ambitious target than anything seen)"""
+    eval_rtg: Optional[float] = None
+    """initial return-to-go at evaluation (default: the best return of the offline data; the paper
+    uses -1 on SoftGym's reward scale)"""
+    eval_episodes: int = 10
+    """evaluation episodes (eval split); the paper uses 100"""
+    eval_every: int = 4
+    """evaluate every N online rounds (and always after pretraining and at the end)"""
+    eval_expert: bool = True
+    """also evaluate the scripted expert on the evaluation episodes, for comparison"""
+    num_envs: int = 2
+    """environments stepped together"""
+    parallel: bool = False
+    """step them in subprocesses (ParallelEnv); SerialEnv otherwise"""
+    log_every: int = 50
+    """log training metrics every N updates"""
+    checkpoint_every: int = 500
+    """checkpoint every N offline updates (online: after every round)"""
+
+
+PRESETS = {
+    "paper": {
+        "model": {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30},
+        "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000, "batch_size": 256,
+        "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
+        "updates_per_round": 300, "eval_rtg": -1.0, "eval_episodes": 100, "eval_every": 50,
+    },
+}
+
+
+def evaluate(run: Run, handle: PolicyHandle, env, cfg: OnlineDTConfig, step: int, tag: str) -> float:
+    actor = handle.actor
+    was_training = actor.training if actor is not None else False
+    res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.eval_episodes, max_steps=cfg.horizon,
+                       desc=f"eval ({tag})")
+    if actor is not None:
+        actor.train(was_training)
+    s = res.summary()
+    prefix = "eval" if handle.kind != "expert" else "eval_expert"
+    run.log(step, {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"],
+                   f"{prefix}/return": float(res.returns.mean())})
+    run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} "
+              f"(return {res.returns.mean():.3f}, {s['n']} eval episodes)")
+    return s["mean"]
+
+
+def main(argv=None) -> dict:
+    run = Run.start("online_dt", OnlineDTConfig, argv, presets=PRESETS, description=__doc__)
+    cfg = run.cfg
+    from trakdis.envs import task_spec
+    from trakdis.modules import make_dt_actor
+    from trakdis.objectives import DTLoss
+
+    spec = task_spec(cfg.task, horizon=cfg.horizon)
+    dt_cfg = cfg.model.dt_config(spec.state_dim, spec.action_dim, cfg.horizon)
+    actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
+    loss = DTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature)
+    updater = Updater(loss, optimizer=cfg.optimizer, lr=cfg.lr, weight_decay=cfg.weight_decay,
+                      warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None)
+    n_params = sum(p.numel() for p in actor.parameters())
+    run.print(f"{cfg.task}: DT with {n_params / 1e6:.2f}M parameters ({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
+
+    buffer = make_buffer(cfg.buffer_capacity, cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
+                         seed=cfg.seed)
+    counters = {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None}
+    state = run.resume_state()
+    if state is not None:
+        updater.load_state_dict(state["updater"])
+        buffer.load_state_dict(state["buffer"])
+        counters.update(state["counters"])
+    else:
+        dataset = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
+                                 log=run.print, progress=cfg.progress)
+        trajectories, lengths = load_trajectories(dataset, keys=("state", "action", "reward", "normalized_performance"))
+        trajectories = trajectories.to_tensordict()
+        buffer.load_offline(trajectories, lengths)
+        rets = trajectories["reward"].sum(dim=(-2, -1))
+        final = trajectories["normalized_performance"][torch.arange(len(lengths)), lengths - 1]
+        run.print(f"offline data: {trajectories.shape[0]} episodes from {dataset}; return {rets.mean():.3f} "
+                  f"(best {rets.max():.3f}); final normalized performance {final.mean():.3f}")
+        counters["best_return"] = float(rets.max())
+
+    def checkpoint():
+        run.save_checkpoint({"updater": updater.state_dict(), "buffer": buffer.state_dict(),
+                             "counters": counters, "rng": rng_state()}, step=counters["updates"])
+
+    def policy_file(path, kind="teacher"):
+        save_policy(path, kind=kind, task=cfg.task, horizon=cfg.horizon, dt_config=dt_cfg, actor=actor,
+                    observation_key="state", target_return=eval_rtg, rtg_scale=cfg.rtg_scale)
+
+    eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else counters["best_return"]
+    handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
+                          target_return=eval_rtg, rtg_scale=cfg.rtg_scale)
+    eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", seed=cfg.seed + 10_000, parallel=cfg.parallel)
+    if state is not None:  # after building the envs, so the RNG streams continue exactly
+        set_rng_state(state["rng"])
+    try:
+        # ---------------------------------------------------------------- expert baseline
+        if cfg.eval_expert and counters["expert_eval"] is None:
+            expert = load_policy("expert", task=cfg.task, horizon=cfg.horizon)
+            expert_env = expert.make_env(num_envs=cfg.num_envs, split="eval", seed=cfg.seed + 10_000, parallel=cfg.parallel)
+            try:
+                counters["expert_eval"] = evaluate(run, expert, expert_env, cfg, 0, "scripted expert")
+            finally:
+                expert_env.close()
+
+        # ---------------------------------------------------------------- offline pretraining
+        history = []
+        bar = progress(total=cfg.offline_updates, initial=min(counters["updates"], cfg.offline_updates), desc="offline")
+        while counters["updates"] < cfg.offline_updates:
+            if run.should_stop(counters["updates"]):
+                checkpoint()
+                run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
+                return counters
+            history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
+            counters["updates"] += 1
+            bar.update(1)
+            u = counters["updates"]
+            if u % cfg.log_every == 0 or u == cfg.offline_updates:
+                run.log(u, {**mean_metrics(history), "phase": 0})
+                history = []
+            if u % cfg.checkpoint_every == 0 and u < cfg.offline_updates:
+                checkpoint()
+        bar.close()
+        if counters["offline_eval"] is None:
+            counters["offline_eval"] = evaluate(run, handle, eval_env, cfg, counters["updates"], "after offline pretraining")
+            policy_file(run.dir / "policy_offline.pt")
+            checkpoint()
+
+        # ---------------------------------------------------------------- online fine-tuning
+        if counters["rounds"] < cfg.online_rounds:
+            explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else 0.5 * counters["best_return"]
+            run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
+                      f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
+            explore_env = handle.make_env(num_envs=cfg.num_envs, split="train", seed=cfg.seed + 1000 * (counters["rounds"] + 1),
+                                          parallel=cfg.parallel, target_return=explore_rtg)
+            try:
+                while counters["rounds"] < cfg.online_rounds:
+                    res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
+                                       max_steps=cfg.horizon, deterministic=False, keep_episodes=True, desc="rollout")
+                    actor.train()
+                    for ep in res.episodes:
+                        buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action")))
+                    counters["rounds"] += 1
+                    history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
+                               progress(range(cfg.updates_per_round), desc=f"round {counters['rounds']}")]
+                    counters["updates"] += cfg.updates_per_round
+                    run.log(counters["updates"], {**mean_metrics(history), "phase": 1,
+                                                  "online/normalized_performance": float(res.final_performance.mean()),
+                                                  "online/return": float(res.returns.mean()),
+                                                  "online/round": counters["rounds"]})
+                    run.print(f"round {counters['rounds']}/{cfg.online_rounds}: rollout normalized performance "
+                              f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f}, "
+                              f"loss_nll {run.logger.last('train/loss_nll'):.3f}")
+                    if counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.online_rounds:
+                        evaluate(run, handle, eval_env, cfg, counters["updates"], f"after round {counters['rounds']}")
+                    checkpoint()
+                    if run.should_stop(counters["updates"]):
+                        run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
+                        return counters
+            finally:
+                explore_env.close()
+
+        final = evaluate(run, handle, eval_env, cfg, counters["updates"], "after online fine-tuning")
+    finally:
+        eval_env.close()
+    counters["final_eval"] = final
+    policy_file(run.dir / "policy.pt")
+    checkpoint()
+    run.finish(columns=[c for c in ("train/loss_nll", "train/entropy", "online/normalized_performance",
+                                    "eval/normalized_performance", "eval_expert/normalized_performance")
+                        if c in run.logger.frame().columns])
+    summary = {"expert": counters["expert_eval"], "offline": counters["offline_eval"], "online": final}
+    run.print("eval normalized performance: "
+              + ", ".join(f"{k} {v:.3f}" for k, v in summary.items() if v is not None)
+              + f" ({cfg.eval_episodes} eval episodes); {time.time() - run.t0:.0f} s")
+    return {**counters, **summary}
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,158 @@
+"""Train the CNN state encoder F_c: 32x32 RGB image -> reduced state, on the expert dataset.
+
+    python recipes/train_encoder.py --task ClothFold
+    python recipes/train_encoder.py --task ClothFold --no-aug          # the paper's No-Aug ablation
+
+Supervised regression on the simulator's states (the encoder outputs standardised states that
+are mapped back with the training set's mean/std). Augmentation while training only: random
+shifts (DrQ, up to ``--pad`` pixels) and horizontal flips whose labels are mirrored consistently
+(``task_spec(task).state_mirror``). Episodes are split into training and validation sets
+(``--val-fraction``); the train/validation MAE is printed and logged per epoch.
+
+Writes ``runs/train_encoder/<name>/``: ``config.json``, ``log.csv``, ``curves.png``,
+``checkpoint.pt`` (resume) and ``encoder.pt`` (the best-validation encoder, used by distill.py).
+"""
+from __future__ import annotations
+
+import copy
+import sys
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from trakdis.utils.checkpoint import rng_state, set_rng_state
+from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
+from trakdis.utils.optim import make_optimizer
+from trakdis.utils.policies import NormalizedEncoder, save_encoder
+from trakdis.utils.progress import progress
+from trakdis.utils.run import Run, RunConfig
+
+Task = Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
+
+
+@dataclass
+class TrainEncoderConfig(RunConfig):
+    """Train the CNN state encoder on the expert dataset's images and states."""
+
+    task: Task = "ClothFold"
+    """cloth task"""
+    horizon: int = 100
+    """episode length of the dataset"""
+    data: DataConfig = field(default_factory=DataConfig)
+    """expert dataset (with pixels)"""
+    image_size: int = 32
+    """image side"""
+    epochs: int = 20
+    """passes over the training images"""
+    batch_size: int = 128
+    """images per update"""
+    lr: float = 1e-3
+    """learning rate (AdamW)"""
+    weight_decay: float = 1e-4
+    """weight decay"""
+    aug: bool = True
+    """augment (random shift + label-consistent horizontal flip) while training"""
+    flip_prob: float = 0.5
+    """probability of the mirrored image"""
+    pad: int = 2
+    """random-shift padding in pixels"""
+    channels: tuple[int, ...] = (32, 32, 32, 32)
+    """channels of the 4 conv layers"""
+    hidden_dim: int = 256
+    """width of the MLP head"""
+    val_fraction: float = 0.1
+    """fraction of the episodes held out for validation"""
+
+
+def main(argv=None) -> dict:
+    run = Run.start("train_encoder", TrainEncoderConfig, argv, description=__doc__)
+    cfg = run.cfg
+    from trakdis.envs import task_spec
+    from trakdis.modules import StateEncoder
+    from trakdis.objectives import EncoderLoss
+
+    spec = task_spec(cfg.task, horizon=cfg.horizon)
+    path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
+                          image_size=cfg.image_size, log=run.print, progress=cfg.progress)
+    data, lengths = load_trajectories(path, keys=("pixels", "state"))
+    n_ep = data.shape[0]
+    n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 else 0
+    perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
+    # Split by episode (images of one episode are strongly correlated).
+    # Only the real steps of each episode (steps past an episode's length are zero padding).
+    def flat(episodes):
+        episodes = episodes.sort().values
+        valid = torch.arange(data.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
+        return data[episodes].to_tensordict()[valid]
+
+    train = flat(perm[n_val:])
+    val = flat(perm[:n_val]) if n_val else None
+    train_states = train["state"]
+    mean, std = train_states.mean(0), train_states.std(0).clamp_min(1e-3)
+    run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "
+              f"({n_ep - n_val} / {n_val} episodes)")
+
+    encoder = NormalizedEncoder(StateEncoder(spec.state_dim, image_size=cfg.image_size, channels=cfg.channels,
+                                             hidden_dim=cfg.hidden_dim), mean, std).to(cfg.device)
+    loss = EncoderLoss(encoder, state_mirror=spec.state_mirror, augment=cfg.aug, flip_prob=cfg.flip_prob, pad=cfg.pad)
+    optim = make_optimizer("adamw", encoder.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    n_params = sum(p.numel() for p in encoder.parameters())
+    run.print(f"encoder: {n_params / 1e6:.2f}M parameters, augmentation {'on' if cfg.aug else 'off'}")
+
+    epoch, best = 0, {"val_mae": float("inf"), "state_dict": None, "epoch": -1}
+    state = run.resume_state()
+    if state is not None:
+        encoder.load_state_dict(state["encoder"])
+        optim.load_state_dict(state["optim"])
+        epoch, best = state["epoch"], state["best"]
+        set_rng_state(state["rng"])
+
+    def validate() -> float:
+        if val is None:
+            return float("nan")
+        loss.eval()
+        with torch.no_grad():
+            errs = []
+            for i in range(0, val.shape[0], 1024):
+                b = val[i : i + 1024].to(cfg.device)
+                errs.append((encoder(b["pixels"]) - b["state"]).abs().mean(-1))
+        loss.train()
+        return float(torch.cat(errs).mean())
+
+    while epoch < cfg.epochs:
+        order = torch.randperm(train.shape[0])
+        totals, n = {"loss_encoder": 0.0, "mae": 0.0}, 0
+        for i in progress(range(0, train.shape[0], cfg.batch_size), desc=f"epoch {epoch + 1}"):
+            batch = train[order[i : i + cfg.batch_size]].to(cfg.device)
+            out = loss(batch)
+            optim.zero_grad(set_to_none=True)
+            out["loss_encoder"].backward()
+            optim.step()
+            for k in totals:
+                totals[k] += float(out[k].detach()) * batch.shape[0]
+            n += batch.shape[0]
+        epoch += 1
+        val_mae = validate()
+        if val is None or val_mae < best["val_mae"]:
+            best = {"val_mae": val_mae, "state_dict": copy.deepcopy(encoder.state_dict()), "epoch": epoch}
+        run.log(epoch, {"train/loss_encoder": totals["loss_encoder"] / n, "train/mae": totals["mae"] / n,
+                        "val/mae": val_mae})
+        run.print(f"epoch {epoch}/{cfg.epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
+                  f"train MAE {totals['mae'] / n:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f}")
+        run.save_checkpoint({"encoder": encoder.state_dict(), "optim": optim.state_dict(), "epoch": epoch,
+                             "best": best, "rng": rng_state()}, step=epoch)
+        if run.should_stop(epoch) and epoch < cfg.epochs:
+            run.print(f"stopping after epoch {epoch} (--stop-after); continue with --resume")
+            return best
+    encoder.load_state_dict(best["state_dict"])
+    save_encoder(run.dir / "encoder.pt", encoder.cpu(), task=cfg.task,
+                 extra={"val_mae": best["val_mae"], "epoch": best["epoch"], "aug": cfg.aug, "dataset": str(path)})
+    run.finish()
+    run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
+              f"(state units, mean over {spec.state_dim} dims)")
+    return best
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,162 @@
+"""Every recipe runs end to end as a subprocess with a tiny configuration and leaves its files;
+killed or stopped runs resume from their checkpoint with nothing lost or duplicated."""
+import json
+
+import cv2
+import pandas as pd
+import pytest
+import torch
+
+from trakdis.utils.checkpoint import load_checkpoint
+from trakdis.utils.policies import load_policy
+
+from .conftest import HORIZON, DATA, TINY_DT, distill_args, kill_when, online_dt_args, run_recipe, start_recipe
+
+
+def read_log(run_dir):
+    frame = pd.read_csv(run_dir / "log.csv")
+    steps = frame["step"].tolist()
+    assert steps == sorted(set(steps)), f"log steps not unique/increasing: {steps}"
+    return frame
+
+
+def test_collect_is_idempotent(workdir, dataset):
+    # A second call finds the finished dataset and does not collect again.
+    out = run_recipe(workdir, "collect", "--horizon", HORIZON, "--episodes", 4, "--root", "datasets", "--num-envs", 1)
+    assert "collecting" not in out.stdout and "4 episodes x 6 steps" in out.stdout
+
+
+def test_online_dt_files_and_scores(teacher):
+    for name in ("config.json", "log.csv", "curves.png", "checkpoint.pt", "policy.pt", "policy_offline.pt"):
+        assert (teacher / name).exists(), name
+    cfg = json.loads((teacher / "config.json").read_text())
+    assert cfg["horizon"] == HORIZON and cfg["model"]["embed_dim"] == 16
+    frame = read_log(teacher)
+    evals = frame["eval/normalized_performance"].dropna()
+    # after offline pretraining, after each online round but the last (eval_every=1), and at the end
+    assert len(evals) == 3
+    assert frame["eval_expert/normalized_performance"].notna().sum() == 1
+    assert frame["train/loss_nll"].notna().sum() >= 4 and frame["step"].max() == 6 + 2 * 3
+    assert frame["online/normalized_performance"].notna().sum() == 2
+    ck = load_checkpoint(teacher / "checkpoint.pt")
+    assert ck["step"] == 12 and ck["counters"]["rounds"] == 2 and ck["buffer"]["num_online_added"] == 4
+    handle = load_policy(teacher)
+    assert handle.kind == "teacher" and handle.horizon == HORIZON and handle.observation_key == "state"
+    assert cv2.imread(str(teacher / "curves.png")) is not None
+
+
+def test_online_dt_stop_and_resume_equals_uninterrupted(workdir, dataset, teacher):
+    run_recipe(workdir, "online_dt", *online_dt_args("stopped", "--stop-after", 4))
+    stopped = workdir / "runs" / "online_dt" / "stopped"
+    assert load_checkpoint(stopped / "checkpoint.pt")["step"] == 4 and not (stopped / "policy.pt").exists()
+    out = run_recipe(workdir, "online_dt", "--resume", "--name", "stopped", "--root", "runs")
+    assert "from step 4" in out.stdout
+    a, b = read_log(teacher), read_log(stopped)
+    # Same seed, same data: the resumed run logs the same training losses at the same steps.
+    assert a["step"].tolist() == b["step"].tolist()
+    assert torch.allclose(torch.tensor(a["train/loss_nll"].to_numpy()), torch.tensor(b["train/loss_nll"].to_numpy()),
+                          equal_nan=True, atol=1e-4)
+
+
+def test_online_dt_resume_after_sigkill(workdir, dataset):
+    run_dir = workdir / "runs" / "online_dt" / "killed"
+    proc = start_recipe(workdir, "online_dt", *online_dt_args("killed", "--offline-updates", 100000,
+                                                                 "--no-eval-expert"))
+    kill_when(proc, lambda: (run_dir / "checkpoint.pt").exists())
+    step = load_checkpoint(run_dir / "checkpoint.pt")["step"]
+    assert 0 < step < 100000
+    out = run_recipe(workdir, "online_dt", "--resume", "--name", "killed", "--offline-updates", step + 2,
+                     "--online-rounds", 1)
+    assert f"from step {step}" in out.stdout
+    frame = read_log(run_dir)
+    assert frame["step"].max() == step + 2 + 3
+    assert (run_dir / "policy.pt").exists()
+    cfg = json.loads((run_dir / "config.json").read_text())
+    assert cfg["offline_updates"] == step + 2 and cfg["online_rounds"] == 1 and cfg["model"]["embed_dim"] == 16
+
+
+def test_train_encoder_stop_resume(workdir, dataset, encoder):
+    assert (encoder / "encoder.pt").exists() and (encoder / "curves.png").exists()
+    frame = read_log(encoder)
+    assert frame["step"].tolist() == [1, 2] and frame["val/mae"].notna().all()
+    run_recipe(workdir, "train_encoder", "--name", "enc2", "--horizon", HORIZON, *DATA, "--epochs", 2,
+               "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--no-aug", "--stop-after", 1)
+    run_dir = workdir / "runs" / "train_encoder" / "enc2"
+    assert not (run_dir / "encoder.pt").exists()
+    out = run_recipe(workdir, "train_encoder", "--resume", "--name", "enc2")
+    assert "from step 1" in out.stdout and "epoch 2/2" in out.stdout and "epoch 1/2" not in out.stdout
+    assert read_log(run_dir)["step"].tolist() == [1, 2]
+    assert json.loads((run_dir / "config.json").read_text())["aug"] is False
+
+
+def test_distill_files_and_resume(workdir, student):
+    for name in ("config.json", "log.csv", "curves.png", "checkpoint.pt", "policy.pt"):
+        assert (student / name).exists(), name
+    frame = read_log(student)
+    assert frame["train/loss_distill"].notna().sum() == 2
+    assert frame["eval_teacher/normalized_performance"].notna().sum() == 1
+    assert frame["eval/normalized_performance"].notna().sum() == 3  # before, after round 1, at the end
+    handle = load_policy(student)
+    assert handle.kind == "student" and handle.observation_key == "state_estimate" and handle.encoder is not None
+    run_recipe(workdir, "distill", *distill_args("student2", "--stop-after", 1))
+    out = run_recipe(workdir, "distill", "--resume", "--name", "student2")
+    assert "from step 2" in out.stdout
+    a, b = read_log(student), read_log(workdir / "runs" / "distill" / "student2")
+    assert a["step"].tolist() == b["step"].tolist()
+
+
+def test_distill_ablations(workdir, teacher, encoder):
+    out = run_recipe(workdir, "distill", *distill_args("ablation", "--no-weight-copy", "--no-distill",
+                                                        "--state-noise", "1e-3", "--no-eval-teacher", *DATA))
+    assert "expert imitation" in out.stdout and "weight copy False" in out.stdout
+    frame = read_log(workdir / "runs" / "distill" / "ablation")
+    assert frame["train/loss_nll"].notna().sum() == 2 and "train/loss_distill" not in frame.columns
+    ck = load_checkpoint(workdir / "runs" / "distill" / "ablation" / "policy.pt")
+    assert ck["distill"] is False and ck["weight_copy"] is False and ck["state_noise"] == 1e-3
+
+
+def test_evaluate_student_and_expert(workdir, student):
+    run_recipe(workdir, "evaluate", "--name", "ev", "--policy", "runs/distill/student", "--trials", 3,
+               "--state-noise", 0, 1e-3, "--videos", 1, "--video-size", 64, "--threads", 1)
+    run_dir = workdir / "runs" / "evaluate" / "ev"
+    summary = pd.read_csv(run_dir / "summary.csv")
+    assert summary["state_noise"].tolist() == [0.0, 1e-3] and (summary["n"] == 3).all()
+    assert {"mean", "std", "p25", "p50", "p75"} <= set(summary.columns)
+    episodes = pd.read_csv(run_dir / "episodes.csv")
+    assert len(episodes) == 6 and (episodes["length"] == HORIZON).all()
+    assert summary["mean"].iloc[0] == pytest.approx(episodes[episodes.state_noise == 0]["final_normalized_performance"].mean())
+    md = (run_dir / "summary.md").read_text()
+    assert md.startswith("| task | policy | state_noise | n | mean") and "| ClothFold | student |" in md
+    videos = list((run_dir / "videos").iterdir())
+    assert len(videos) == 1 and videos[0].stat().st_size > 0
+    cap = cv2.VideoCapture(str(videos[0]))
+    ok, frame = cap.read()
+    assert ok and frame.shape[0] == 64 and frame.shape[1] == 64 + 4 + 64  # render | 32x32 view upscaled
+
+    run_recipe(workdir, "evaluate", "--name", "ev_expert", "--policy", "expert", "--task", "ClothFold",
+               "--horizon", HORIZON, "--trials", 2, "--videos", 0)
+    summary = pd.read_csv(workdir / "runs" / "evaluate" / "ev_expert" / "summary.csv")
+    assert summary["policy"].tolist() == ["expert"] and summary["n"].tolist() == [2]
+
+
+@pytest.mark.parametrize("recipe,flags", [
+    ("collect", ["--episodes", "--no-pixels"]),
+    ("online_dt", ["--preset", "--model.embed-dim", "--offline-updates", "--exploration-rtg", "--resume"]),
+    ("train_encoder", ["--no-aug", "--val-fraction"]),
+    ("distill", ["--no-weight-copy", "--no-distill", "--state-noise"]),
+    ("evaluate", ["--trials", "--state-noise", "--videos"]),
+])
+def test_help(workdir, recipe, flags):
+    out = run_recipe(workdir, recipe, "--help")
+    for flag in flags:
+        assert flag in out.stdout, flag
+
+
+def test_paper_preset_config(workdir, dataset):
+    # --preset paper resolves to the paper's hyperparameters (checked on the saved config, then stopped at once).
+    run_recipe(workdir, "online_dt", "--name", "paper", "--preset", "paper", "--model.n-layer", "1", "--horizon", HORIZON,
+               *DATA, "--stop-after", 0, "--no-eval-expert", "--threads", 1)
+    cfg = json.loads((workdir / "runs" / "online_dt" / "paper" / "config.json").read_text())
+    assert cfg["model"] == {"embed_dim": 256, "n_layer": 1, "n_head": 16, "context_len": 30, "dropout": 0.1}
+    assert cfg["optimizer"] == "lamb" and cfg["lr"] == 1e-4 and cfg["weight_decay"] == 1e-4
+    assert cfg["data"]["episodes"] == 4  # explicit flags win over the preset

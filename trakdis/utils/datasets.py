@@ -1,0 +1,82 @@
+"""Expert datasets for the recipes: find or collect them, load them, fill a replay buffer.
+
+Thin glue over :mod:`trakdis.data` so that every recipe names datasets the same way
+(``datasets/<task>_<episodes>ep_h<horizon>_noise<sigma>[_px<size>]``) and collects a missing one
+automatically (an interrupted collection resumes when the same command runs again).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import torch
+from tensordict import TensorDict
+
+__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "load_trajectories", "make_buffer"]
+
+
+@dataclass
+class DataConfig:
+    """Expert dataset (collected with the scripted expert if missing)."""
+
+    path: Optional[str] = None
+    """dataset directory (default: <root>/<task>_<episodes>ep_h<horizon>_noise<sigma>_px<size>)"""
+    root: str = "datasets"
+    """where default dataset directories live"""
+    episodes: int = 40
+    """episodes to collect when the dataset does not exist (the paper: 8000)"""
+    expert_noise: float = 0.2
+    """std of the Gaussian noise on the collecting expert's actions (diverse, imperfect data)"""
+    num_envs: int = 2
+    """environments stepped together while collecting (worker processes when > 1)"""
+
+
+def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bool, image_size: int = 32) -> Path:
+    if cfg.path:
+        return Path(cfg.path)
+    name = f"{task}_{cfg.episodes}ep_h{horizon}_noise{cfg.expert_noise:g}" + (f"_px{image_size}" if pixels else "")
+    return Path(cfg.root) / name
+
+
+def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixels: bool, image_size: int = 32,
+                   log: Callable[..., None] = print, progress: bool = True) -> Path:
+    """The dataset directory; collected first (resuming an interrupted collection) if missing."""
+    from trakdis.data import collect_expert_dataset, partial_path
+
+    path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels, image_size=image_size)
+    if (path / "meta.json").exists():
+        return path
+    if path.exists():
+        raise FileExistsError(f"{path} exists but holds no dataset (no meta.json); remove it or pass another path")
+    verb = "resuming the collection of" if partial_path(path).exists() else "collecting"
+    log(f"{verb} {cfg.episodes} expert episodes of {task} into {path} (action noise {cfg.expert_noise:g}, "
+        f"{'with' if pixels else 'without'} pixels)")
+    collect_expert_dataset(path, task=task, num_episodes=cfg.episodes, num_workers=cfg.num_envs,
+                           image_size=image_size, from_pixels=pixels, noise=cfg.expert_noise, seed=seed,
+                           horizon=horizon, progress=progress)
+    return path
+
+
+def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tuple[TensorDict, torch.Tensor]:
+    """``(steps [episodes, horizon], lengths [episodes])`` of a dataset (memory-mapped), optionally
+    restricted to ``keys``; raises a clear error naming missing keys."""
+    from trakdis.data import load_dataset
+
+    steps, meta = load_dataset(path)
+    if keys is not None:
+        missing = [k for k in keys if k not in steps.keys()]
+        if missing:
+            hint = " (collect it with pixels: recipes/collect.py --pixels)" if "pixels" in missing else ""
+            raise KeyError(f"dataset {path} has no {missing}; it has {sorted(steps.keys())}{hint}")
+        steps = steps.select(*keys)
+    return steps, meta["lengths"]
+
+
+def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float, keys: Sequence[str],
+                seed: int | None = None):
+    """A :class:`~trakdis.data.TrajectoryReplayBuffer` storing ``keys`` (+ ``"action"``, reward)."""
+    from trakdis.data import TrajectoryReplayBuffer
+
+    keys = list(dict.fromkeys([*keys, "action"]))
+    return TrajectoryReplayBuffer(capacity, context_len, max_len, keys=keys, rtg_scale=rtg_scale, seed=seed)
