@@ -4,4 +4,13 @@ Subpackages: ``envs`` (MuJoCo cloth tasks), ``modules`` (Decision Transformer, e
 ``objectives`` (losses), ``transforms``, ``data`` (datasets, replay buffer), ``utils``.
 """
 
+import os as _os
+
+# MuJoCo fixes its GL backend when it is first imported, and ``import torchrl.envs`` imports it.
+# Choose offscreen EGL (works on CPU-only machines through Mesa) before anything else can, unless
+# the user already chose a backend.
+_os.environ.setdefault("MUJOCO_GL", "egl")
+if _os.environ["MUJOCO_GL"] in ("egl", "osmesa"):
+    _os.environ.setdefault("PYOPENGL_PLATFORM", _os.environ["MUJOCO_GL"])
+
 __version__ = "0.1.0"
