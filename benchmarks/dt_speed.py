@@ -20,6 +20,7 @@ Needs ``pip install transformers`` for the TorchRL part (skipped with a message 
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib.util
 import statistics
 import time
@@ -81,6 +82,7 @@ def batch_windows(b, k, device):
 
 
 def time_train(loss_module, loss_keys, td, device, steps, warmup=3):
+    gc.collect()
     opt = torch.optim.Adam(loss_module.parameters(), lr=1e-4)
 
     def step():
@@ -107,6 +109,10 @@ def time_acting(policy, n_envs, device, checkpoints=(10, 100, 1000)):
     g = torch.Generator().manual_seed(1)
     obs = torch.randn(n_envs, STATE_DIM, generator=g).to(device)
     td = TensorDict(observation=obs, return_to_go=torch.zeros(n_envs, 1, device=device), batch_size=[n_envs], device=device)
+    for t in range(20):  # warm-up; step_count 0 below starts a fresh context
+        td["step_count"] = torch.full((n_envs, 1), t, dtype=torch.long, device=device)
+        policy(td)
+    gc.collect()
     last = max(checkpoints) + 10
     times = []
     for t in range(last):
@@ -121,6 +127,7 @@ def time_acting(policy, n_envs, device, checkpoints=(10, 100, 1000)):
 
 @torch.no_grad()
 def time_window_forward(actor, td, device, steps=30):
+    gc.collect()
     for _ in range(3):
         actor(td.clone())
     sync(device)

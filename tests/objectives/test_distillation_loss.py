@@ -137,3 +137,15 @@ def test_set_keys_and_errors(actors):
         DistillationLoss(student, student)
     with pytest.raises(KeyError):
         loss(window().exclude("state_estimate"))
+
+
+def test_teacher_targets_are_deterministic_even_if_teacher_is_in_train_mode():
+    torch.manual_seed(0)
+    c = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.5, attn_dropout=0.5)
+    teacher = make_dt_actor(c, observation_key="state").train()
+    student = make_dt_actor(c, observation_key="state_estimate").eval()
+    loss = DistillationLoss(student, teacher)
+    td = window()
+    a, b = loss(td.clone()), loss(td.clone())
+    torch.testing.assert_close(a["loss_distill"], b["loss_distill"], rtol=0, atol=0)
+    assert teacher.training  # the flag is restored

@@ -33,7 +33,8 @@ class DistillationLoss(LossModule):
       numerically poor where tanh saturates). The teacher side is a constant.
     * metric ``teacher_student_mse``: masked mean squared difference of the deterministic actions.
 
-    No gradient reaches the teacher (its parameters are held as detached buffers, not
+    The teacher is evaluated in eval mode (no dropout) whatever its ``training`` flag, so its
+    targets are deterministic. No gradient reaches the teacher (its parameters are held as detached buffers, not
     parameters of this module) nor the encoder (the student's inputs are detached).
 
     Args:
@@ -100,8 +101,15 @@ class DistillationLoss(LossModule):
         return ["loss_distill"] + (["loss_kl"] if self.kl_coef > 0 else []) + ["teacher_student_mse"]
 
     def teacher_dist(self, tensordict: TensorDictBase):
-        with self.teacher_network_params.to_module(self.teacher_network):
-            return self.teacher_network.get_dist(tensordict.copy())
+        """The teacher's per-step distribution, always computed in eval mode (no dropout)."""
+        teacher = self.teacher_network
+        was_training = teacher.training
+        teacher.eval()
+        try:
+            with self.teacher_network_params.to_module(teacher):
+                return teacher.get_dist(tensordict.copy())
+        finally:
+            teacher.train(was_training)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         student_td = tensordict.select(*self.student_network.in_keys, strict=True).detach()
