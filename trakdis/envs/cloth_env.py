@@ -178,17 +178,29 @@ class ClothEnv(gym.Env):
                  float(rng.uniform(0.06, 0.1)))]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode. ``options`` (debugging/tests): ``config_index`` (int) picks a pool
+        entry; ``config`` (:class:`~trakdis.envs.ClothConfig`) and ``picker_pos`` (xyz per picker)
+        override the draw."""
         super().reset(seed=seed)
         rng = self.np_random
-        if options and "config_index" in options:
+        options = dict(options or {})
+        unknown = set(options) - {"config_index", "config", "picker_pos"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected config_index, config, picker_pos")
+        if "config_index" in options:
             index = int(options["config_index"])
         elif self.fixed_config_index is not None:
             index = self.fixed_config_index
         else:
             index = int(rng.integers(CONFIG_POOL_SIZE))
         self.config_index = index
-        self.config = cloth_config(self.task, self.split, index)
+        self.config = options.get("config") or cloth_config(self.task, self.split, index)
         pickers = self._initial_pickers(rng)
+        if "picker_pos" in options:
+            pickers = [tuple(float(v) for v in p) for p in options["picker_pos"]]
+            if len(pickers) != self.num_pickers or any(len(p) != 3 for p in pickers):
+                raise ValueError(f"picker_pos must be {self.num_pickers} xyz triple(s), got {options['picker_pos']}")
+        self.picker_pos0 = pickers
         render_size = self._renderer.render_size if self._renderer is not None else 64
         xml = build_mjcf(self.task, self.config, self.physics, pickers, render_size)
         self.model = mujoco.MjModel.from_xml_string(xml)

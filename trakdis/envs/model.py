@@ -9,7 +9,7 @@ from trakdis.envs.specs import ClothConfig, check_task
 
 # Camera: in the plane x = 0, image x axis = world +x, looking down at 45 degrees at the cloth
 # centre. A horizontal image flip is then exactly the reflection x -> -x (see specs.TaskSpec).
-CAMERA_POS = (0.0, -0.42, 0.42)
+CAMERA_POS = (0.0, -0.48, 0.48)
 CAMERA_FOVY = 45.0
 
 TABLE_RGBA = "0.55 0.47 0.38 1"
