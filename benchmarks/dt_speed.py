@@ -6,9 +6,10 @@ heads, MLP width 4x, dropout), at context lengths 5, 30 and 100, on the CPU and 
 available. All ratios printed come from this one run.
 
 * training step: a batch of ``--batch`` windows, forward (log-likelihood + 1-sample entropy),
-  backward and an Adam step; reported in samples (windows) per second.
+  backward and an Adam step; reported in samples (windows) per second, best of ``--rounds``
+  rounds of ``--steps`` steps alternating between the two implementations.
 * acting: per-step latency for ``--envs`` environments at steps 10, 100 and 1000 of one long
-  episode (median over 10 consecutive steps around each). TorchRL has no stateful acting
+  episode (the fastest of the 10 steps starting there: robust to other processes on the CPU). TorchRL has no stateful acting
   wrapper; its per-step cost is one forward over the last-K window (what
   ``DecisionTransformerInferenceWrapper`` does), measured on a ready-made window.
 
@@ -22,7 +23,6 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib.util
-import statistics
 import time
 
 import torch
@@ -81,27 +81,41 @@ def batch_windows(b, k, device):
     ).to(device)
 
 
-def time_train(loss_module, loss_keys, td, device, steps, warmup=3):
-    gc.collect()
-    opt = torch.optim.Adam(loss_module.parameters(), lr=1e-4)
+class TrainStep:
+    """One optimisation step (forward, backward, Adam) of a loss module on a fixed batch."""
 
-    def step():
-        out = loss_module(td)
-        total = sum(out[k] for k in loss_keys)
-        opt.zero_grad(set_to_none=True)
+    def __init__(self, loss_module, loss_keys, td):
+        self.loss_module, self.loss_keys, self.td = loss_module, loss_keys, td
+        self.opt = torch.optim.Adam(loss_module.parameters(), lr=1e-4)
+
+    def __call__(self):
+        out = self.loss_module(self.td)
+        total = sum(out[k] for k in self.loss_keys)
+        self.opt.zero_grad(set_to_none=True)
         total.backward()
-        opt.step()
+        self.opt.step()
 
-    for _ in range(warmup):
-        step()
-    sync(device)
-    times = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        step()
-        sync(device)
-        times.append(time.perf_counter() - t0)
-    return td.shape[0] / statistics.median(times)
+
+def time_train(steps_by_name: dict, device, steps: int, rounds: int, warmup: int = 2) -> dict:
+    """Samples/s per step function; rounds alternate between them and the best round counts.
+
+    Alternating and keeping the best round makes the ratio robust to other processes
+    competing for the CPU (this benchmark is meant to run on a shared machine too).
+    """
+    for fn in steps_by_name.values():
+        for _ in range(warmup):
+            fn()
+    best = dict.fromkeys(steps_by_name, 0.0)
+    for _ in range(rounds):
+        for name, fn in steps_by_name.items():
+            gc.collect()
+            sync(device)
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                fn()
+            sync(device)
+            best[name] = max(best[name], steps * fn.td.shape[0] / (time.perf_counter() - t0))
+    return best
 
 
 @torch.no_grad()
@@ -122,7 +136,7 @@ def time_acting(policy, n_envs, device, checkpoints=(10, 100, 1000)):
         policy(td)
         sync(device)
         times.append(time.perf_counter() - t0)
-    return {c: statistics.median(times[c : c + 10]) for c in checkpoints}
+    return {c: min(times[c : c + 10]) for c in checkpoints}
 
 
 @torch.no_grad()
@@ -138,7 +152,7 @@ def time_window_forward(actor, td, device, steps=30):
         actor(x)
         sync(device)
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return min(times)
 
 
 def run_device(device, args):
@@ -151,17 +165,22 @@ def run_device(device, args):
         ours = make_dt_actor(cfg).to(device)
         n_ours = sum(p.numel() for p in ours.parameters())
         td = batch_windows(args.batch, k, device)
-        sps_ours = time_train(DTLoss(ours, lambda_entropy=0.1), ["loss_nll", "loss_entropy"], td, device, args.steps)
-        line = f"K={k:4d} train  trakdis {sps_ours:9.1f} samples/s ({n_ours / 1e6:.2f}M params)"
+        steps = {"trakdis": TrainStep(DTLoss(ours, lambda_entropy=0.1), ["loss_nll", "loss_entropy"], td)}
         theirs = None
         if HAS_TRANSFORMERS:
             torch.manual_seed(0)
             theirs = make_torchrl_actor(cfg, device)
             n_theirs = sum(p.numel() for p in theirs.parameters())
-            sps_theirs = time_train(
-                OnlineDTLoss(theirs, alpha_init=0.1, fixed_alpha=True), ["loss_log_likelihood", "loss_entropy"], td, device, args.steps
+            steps["torchrl"] = TrainStep(
+                OnlineDTLoss(theirs, alpha_init=0.1, fixed_alpha=True), ["loss_log_likelihood", "loss_entropy"], td
             )
-            line += f" | torchrl {sps_theirs:9.1f} samples/s ({n_theirs / 1e6:.2f}M params) | ratio {sps_ours / sps_theirs:5.2f}x"
+        sps = time_train(steps, device, args.steps, args.rounds)
+        line = f"K={k:4d} train  trakdis {sps['trakdis']:9.1f} samples/s ({n_ours / 1e6:.2f}M params)"
+        if theirs is not None:
+            line += (
+                f" | torchrl {sps['torchrl']:9.1f} samples/s ({n_theirs / 1e6:.2f}M params)"
+                f" | ratio {sps['trakdis'] / sps['torchrl']:5.2f}x"
+            )
         print(line, flush=True)
         ours.eval()
         with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -186,7 +205,8 @@ def main():
     p.add_argument("--contexts", type=int, nargs="+", default=[5, 30, 100])
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--envs", type=int, default=1)
-    p.add_argument("--steps", type=int, default=10, help="timed training steps per measurement")
+    p.add_argument("--steps", type=int, default=5, help="timed training steps per round")
+    p.add_argument("--rounds", type=int, default=3, help="alternating timing rounds (the best counts)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--devices", nargs="+", default=None, help="default: cpu, plus cuda when available")
     args = p.parse_args()

@@ -136,3 +136,13 @@ def test_errors(actor):
     late = TensorDict(state=torch.randn(2, S), return_to_go=torch.ones(2, 1), step_count=torch.full((2, 1), 64), batch_size=[2])
     with pytest.raises(ValueError, match="max_timestep"):
         DTActingPolicy(actor, mode="kv_cache")(late)
+
+
+def test_input_dtypes_are_converted(actor):
+    policy = DTActingPolicy(actor)
+    td = TensorDict(state=torch.randn(2, S), return_to_go=torch.ones(2, 1), step_count=torch.zeros(2, 1, dtype=torch.long), batch_size=[2])
+    td64 = TensorDict(
+        state=td["state"].double(), return_to_go=td["return_to_go"].double(), step_count=td["step_count"].int(), batch_size=[2]
+    )
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        torch.testing.assert_close(policy(td64)["action"], policy(td)["action"])

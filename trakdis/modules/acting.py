@@ -122,9 +122,13 @@ class DTActingPolicy(TensorDictModuleBase):
         n = 1
         for s in batch:
             n *= s
-        obs = obs.reshape(n, c.state_dim)
-        rtg = rtg.reshape(n, 1).to(obs.dtype)
-        step_count = step_count.reshape(n).long()
+        # run on the actor's device/dtype (e.g. CPU envs with a GPU policy); the action goes back
+        # to the device of the input observation
+        param = self.dt.head_loc.weight
+        out_device = obs.device
+        obs = obs.reshape(n, c.state_dim).to(param.device, param.dtype)
+        rtg = rtg.reshape(n, 1).to(param.device, param.dtype)
+        step_count = step_count.reshape(n).to(param.device, torch.long)
         with torch.no_grad():
             if self._n != n or self._obs.device != obs.device:
                 self._allocate(n, obs.device, obs.dtype)
@@ -133,7 +137,7 @@ class DTActingPolicy(TensorDictModuleBase):
             action = self._prob_module(small).get(self._prob_module.out_keys[0])
             self._act[:, self._ptr] = action
             self._ptr = (self._ptr + 1) % self.context_len
-        tensordict.set(self.action_key, action.reshape(*batch, c.action_dim))
+        tensordict.set(self.action_key, action.reshape(*batch, c.action_dim).to(out_device))
         return tensordict
 
     def _step(self, obs, rtg, step_count):
