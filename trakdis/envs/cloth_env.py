@@ -49,7 +49,7 @@ class ClothEnv(gym.Env):
         split: ``"train"`` or ``"eval"``: which configuration pool resets draw from.
         horizon: episode length (then ``truncated=True``).
         include_vertices: add ``"vertices"`` (all cloth vertex positions) to the observation.
-        resolution, timestep, substeps, iterations, selfcollide: physics (see
+        resolution, timestep, substeps, iterations, solver, tolerance, selfcollide: physics (see
             :class:`~trakdis.envs.model.PhysicsOptions`).
         action_repeat: picker sub-steps per env step (SoftGym: 8).
         move_per_substep: metres moved per sub-step for an action of 1 (SoftGym: 0.01 m for
@@ -74,6 +74,8 @@ class ClothEnv(gym.Env):
         timestep: float = 0.01,
         substeps: int = 1,
         iterations: int = 20,
+        solver: str = "CG",
+        tolerance: float = 1e-6,
         selfcollide: str = "auto",
         action_repeat: int = 8,
         move_per_substep: float = 0.0075,
@@ -97,7 +99,8 @@ class ClothEnv(gym.Env):
         self.from_pixels = bool(from_pixels)
         self.include_vertices = bool(include_vertices)
         self.physics = PhysicsOptions(resolution=resolution, timestep=timestep, substeps=substeps,
-                                      iterations=iterations, selfcollide=selfcollide)
+                                      iterations=iterations, solver=solver, tolerance=tolerance,
+                                      selfcollide=selfcollide)
         self.action_repeat = action_repeat
         self.move_per_substep = float(move_per_substep)
         self.grasp_radius = float(grasp_radius)

@@ -27,7 +27,9 @@ class PhysicsOptions:
         timestep: MuJoCo timestep (s). Explicit Euler is required by flex shell elasticity in
             MuJoCo >= 3.3 (the implicit integrators reject it).
         substeps: physics steps per picker sub-step (SoftGym's action repeat is over sub-steps).
-        iterations: CG solver iterations.
+        iterations: constraint solver iterations (upper bound; ``tolerance`` may stop earlier).
+        solver: MuJoCo constraint solver (``CG``, ``Newton`` or ``PGS``).
+        tolerance: solver tolerance.
         vertex_radius: collision radius of a cloth vertex (m); self-collision uses it too.
         selfcollide: flex self-collision mode (kept on: without it a fold sinks through itself).
         thickness: shell thickness used by the bending model (m).
@@ -37,6 +39,8 @@ class PhysicsOptions:
     timestep: float = 0.01
     substeps: int = 1
     iterations: int = 20
+    solver: str = "CG"
+    tolerance: float = 1e-6
     vertex_radius: float = 0.004
     selfcollide: str = "auto"
     thickness: float = 1e-3
@@ -48,6 +52,8 @@ class PhysicsOptions:
             raise ValueError(f"timestep must be in (0, 0.02] s, got {self.timestep!r}")
         if not (isinstance(self.substeps, int) and self.substeps >= 1):
             raise ValueError(f"substeps must be a positive int, got {self.substeps!r}")
+        if self.solver not in ("CG", "Newton", "PGS"):
+            raise ValueError(f"solver must be CG, Newton or PGS, got {self.solver!r}")
         if self.selfcollide not in ("none", "narrow", "bvh", "sap", "auto"):
             raise ValueError(f"selfcollide must be a MuJoCo flex selfcollide mode, got {self.selfcollide!r}")
 
@@ -111,8 +117,8 @@ def build_mjcf(
     cam = CAMERA_POS
     return f"""
 <mujoco model="trakdis_{task}">
-  <option timestep="{physics.timestep}" integrator="Euler" solver="CG" iterations="{physics.iterations}"
-          tolerance="1e-6"/>
+  <option timestep="{physics.timestep}" integrator="Euler" solver="{physics.solver}" iterations="{physics.iterations}"
+          tolerance="{physics.tolerance}"/>
   <size memory="32M"/>
   <visual>
     <quality shadowsize="0" offsamples="0"/>
