@@ -293,14 +293,13 @@ class ClothEnv(gym.Env):
         self._update_grasps(a[:, 3])
         delta = a[:, :3] * self.move_per_substep
         warn_before = [d.warning[w].number for w in _BAD_WARNINGS]
-        unstable = False
         for _ in range(self.action_repeat):
             d.mocap_pos[:] = np.clip(d.mocap_pos + delta, WORKSPACE_LOW, WORKSPACE_HIGH)
             for _ in range(self.physics.substeps):
                 mujoco.mj_step(m, d)
-            if self._unstable(warn_before):
-                unstable = True
-                break
+        # Checked once per env step: MuJoCo's warning counters and non-finite values persist, so
+        # nothing that happened in an earlier sub-step is missed.
+        unstable = self._unstable(warn_before)
         self._t += 1
         if unstable:
             # No NaN leaves the env: repeat the last finite observation and performance.
