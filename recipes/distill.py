@@ -35,7 +35,7 @@ from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, rng_state
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.evaluation import run_episodes
 from trakdis.utils.logger import latest_run_dir
-from trakdis.utils.policies import PolicyHandle, load_encoder, load_policy, save_policy
+from trakdis.utils.policies import close_env, PolicyHandle, load_encoder, load_policy, save_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.training import Updater, episode_to_trajectory, mean_metrics
@@ -167,7 +167,8 @@ def main(argv=None) -> dict:
 
     def evaluate(handle, env, tag, prefix="eval"):
         was = student.training
-        res = run_episodes(env, handle.make_policy(), cfg.eval_episodes, max_steps=horizon, desc=f"eval ({tag})")
+        res = run_episodes(env, handle.make_policy(), cfg.eval_episodes, max_steps=horizon, desc=f"eval ({tag})",
+                           seed=eval_seed)  # the same eval configurations every time
         student.train(was)
         s = res.summary()
         run.log(counters["updates"], {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"]})
@@ -179,28 +180,29 @@ def main(argv=None) -> dict:
                              "rng": rng_state()}, step=counters["updates"])
 
     eval_seed = cfg.seed + 10_000
-    eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", seed=eval_seed, parallel=cfg.parallel)
+    eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
     act_handle = student_handle if cfg.act == "student" else PolicyHandle(
         "teacher", task, horizon, actor=teacher.actor, encoder=encoder, observation_key="state",
         target_return=teacher.target_return, rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs)
     # Rollouts carry both the true state and the encoder's (noisy) estimate.
-    roll_env = act_handle.make_env(num_envs=cfg.num_envs, split="train", seed=cfg.seed + 1000 * (counters["rounds"] + 1),
-                                   state_noise=cfg.state_noise, parallel=cfg.parallel) if cfg.distill else None
+    roll_env = act_handle.make_env(num_envs=cfg.num_envs, split="train", state_noise=cfg.state_noise,
+                                   noise_seed=cfg.seed + 7919, parallel=cfg.parallel) if cfg.distill else None
     if state is not None:  # after building the envs, so the RNG streams continue exactly
         set_rng_state(state["rng"])
     try:
         if cfg.eval_teacher and counters["teacher_eval"] is None:
-            t_env = teacher.make_env(num_envs=cfg.num_envs, split="eval", seed=eval_seed, parallel=cfg.parallel)
+            t_env = teacher.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
             try:
                 counters["teacher_eval"] = evaluate(teacher, t_env, "teacher", prefix="eval_teacher")
             finally:
-                t_env.close()
+                close_env(t_env)
         if counters["initial_eval"] is None:
             counters["initial_eval"] = evaluate(student_handle, eval_env, "student before training")
         while counters["rounds"] < cfg.rounds:
             if cfg.distill:
                 res = run_episodes(roll_env, act_handle.make_policy(), cfg.episodes_per_round, max_steps=horizon,
-                                   deterministic=True, keep_episodes=True, desc="rollout")
+                                   deterministic=True, keep_episodes=True, desc="rollout",
+                                   seed=cfg.seed + 1000 * (counters["rounds"] + 1))
                 for ep in res.episodes:
                     buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action")))
                 rollout_metrics = {"rollout/normalized_performance": float(res.final_performance.mean())}
@@ -228,9 +230,9 @@ def main(argv=None) -> dict:
                 return counters
         final = evaluate(student_handle, eval_env, "student after distillation")
     finally:
-        eval_env.close()
+        close_env(eval_env)
         if roll_env is not None:
-            roll_env.close()
+            close_env(roll_env)
     counters["final_eval"] = final
     save_policy(run.dir / "policy.pt", kind="student", task=task, horizon=horizon, dt_config=dt_cfg, actor=student,
                 observation_key="state_estimate", target_return=teacher.target_return, rtg_scale=teacher.rtg_scale,

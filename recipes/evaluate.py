@@ -20,7 +20,7 @@ import pandas as pd
 import torch
 
 from trakdis.utils.evaluation import episode_frames, run_episodes, summarize, write_summary_table
-from trakdis.utils.policies import load_policy
+from trakdis.utils.policies import close_env, load_policy
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.video import write_video
 
@@ -68,13 +68,13 @@ def main(argv=None) -> pd.DataFrame:
               f"state noise {list(cfg.state_noise)}")
     rows, summaries = [], []
     for i, sigma in enumerate(cfg.state_noise):
-        env = handle.make_env(num_envs=cfg.num_envs, split=cfg.split, seed=cfg.seed, state_noise=sigma,
+        env = handle.make_env(num_envs=cfg.num_envs, split=cfg.split, state_noise=sigma, noise_seed=cfg.seed + 7919,
                               parallel=cfg.parallel, target_return=cfg.target_return)
-        try:
+        try:  # the same configurations for every noise level (and every policy evaluated with this seed)
             res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.trials, max_steps=handle.horizon,
-                               desc=f"sigma={sigma:g}")
+                               desc=f"sigma={sigma:g}", seed=cfg.seed)
         finally:
-            env.close()
+            close_env(env)
         for k in range(len(res.final_performance)):
             rows.append({"state_noise": sigma, "episode": k, "final_normalized_performance": res.final_performance[k],
                          "return": res.returns[k], "length": int(res.lengths[k]), "sim_unstable": bool(res.unstable[k])})
@@ -88,13 +88,13 @@ def main(argv=None) -> pd.DataFrame:
     frame = write_summary_table(summaries, run.dir / "summary.csv", run.dir / "summary.md",
                                 columns=("task", "policy", "state_noise", "n", "mean", "std", "p25", "p50", "p75"))
     if cfg.videos > 0:
-        env = handle.make_env(num_envs=1, split=cfg.split, seed=cfg.seed + 100_000, state_noise=cfg.state_noise[0],
+        env = handle.make_env(num_envs=1, split=cfg.split, state_noise=cfg.state_noise[0],
                               target_return=cfg.target_return, video_size=cfg.video_size)
         try:
             res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.videos, max_steps=handle.horizon,
-                               keep_episodes=True, desc="videos")
+                               keep_episodes=True, desc="videos", seed=cfg.seed + 100_000)
         finally:
-            env.close()
+            close_env(env)
         for k, ep in enumerate(res.episodes):
             path = write_video(run.dir / "videos" / f"{handle.task}_{handle.kind}_{k}.mp4",
                                episode_frames(ep, label=handle.kind), fps=cfg.fps)

@@ -32,7 +32,7 @@ import torch
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.checkpoint import rng_state, set_rng_state
 from trakdis.utils.evaluation import run_episodes
-from trakdis.utils.policies import PolicyHandle, load_policy, save_policy
+from trakdis.utils.policies import close_env, PolicyHandle, load_policy, save_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.training import ModelConfig, Updater, episode_to_trajectory, mean_metrics
@@ -115,8 +115,9 @@ PRESETS = {
 def evaluate(run: Run, handle: PolicyHandle, env, cfg: OnlineDTConfig, step: int, tag: str) -> float:
     actor = handle.actor
     was_training = actor.training if actor is not None else False
+    # Every evaluation replays the same eval-split configurations (same seed): scores are comparable.
     res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.eval_episodes, max_steps=cfg.horizon,
-                       desc=f"eval ({tag})")
+                       desc=f"eval ({tag})", seed=cfg.seed + 10_000)
     if actor is not None:
         actor.train(was_training)
     s = res.summary()
@@ -175,18 +176,18 @@ def main(argv=None) -> dict:
     eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else counters["best_return"]
     handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
                           target_return=eval_rtg, rtg_scale=cfg.rtg_scale)
-    eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", seed=cfg.seed + 10_000, parallel=cfg.parallel)
+    eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
     if state is not None:  # after building the envs, so the RNG streams continue exactly
         set_rng_state(state["rng"])
     try:
         # ---------------------------------------------------------------- expert baseline
         if cfg.eval_expert and counters["expert_eval"] is None:
             expert = load_policy("expert", task=cfg.task, horizon=cfg.horizon)
-            expert_env = expert.make_env(num_envs=cfg.num_envs, split="eval", seed=cfg.seed + 10_000, parallel=cfg.parallel)
+            expert_env = expert.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
             try:
                 counters["expert_eval"] = evaluate(run, expert, expert_env, cfg, 0, "scripted expert")
             finally:
-                expert_env.close()
+                close_env(expert_env)
 
         # ---------------------------------------------------------------- offline pretraining
         history = []
@@ -216,12 +217,13 @@ def main(argv=None) -> dict:
             explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else 0.5 * counters["best_return"]
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
-            explore_env = handle.make_env(num_envs=cfg.num_envs, split="train", seed=cfg.seed + 1000 * (counters["rounds"] + 1),
-                                          parallel=cfg.parallel, target_return=explore_rtg)
+            explore_env = handle.make_env(num_envs=cfg.num_envs, split="train", parallel=cfg.parallel,
+                                          target_return=explore_rtg)
             try:
                 while counters["rounds"] < cfg.online_rounds:
                     res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
-                                       max_steps=cfg.horizon, deterministic=False, keep_episodes=True, desc="rollout")
+                                       max_steps=cfg.horizon, deterministic=False, keep_episodes=True, desc="rollout",
+                                       seed=cfg.seed + 1000 * (counters["rounds"] + 1))
                     actor.train()
                     for ep in res.episodes:
                         buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action")))
@@ -243,11 +245,11 @@ def main(argv=None) -> dict:
                         run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
                         return counters
             finally:
-                explore_env.close()
+                close_env(explore_env)
 
         final = evaluate(run, handle, eval_env, cfg, counters["updates"], "after online fine-tuning")
     finally:
-        eval_env.close()
+        close_env(eval_env)
     counters["final_eval"] = final
     policy_file(run.dir / "policy.pt")
     checkpoint()

@@ -32,6 +32,17 @@ def run_recipe(cwd: Path, recipe: str, *args: str, timeout: float = 240) -> subp
     return proc
 
 
+def load_recipe(recipe: str):
+    """Import recipes/<recipe>.py as a module (for in-process checks that need no subprocess)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"_recipe_{recipe}", RECIPES / f"{recipe}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
 def start_recipe(cwd: Path, recipe: str, *args: str) -> subprocess.Popen:
     cmd = [sys.executable, str(RECIPES / f"{recipe}.py"), *map(str, args)]
     return subprocess.Popen(cmd, cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

@@ -90,6 +90,7 @@ def run_episodes(
     keep_episodes: bool = False,
     desc: str | None = "episodes",
     on_episode: Callable[[TensorDictBase], Any] | None = None,
+    seed: int | None = None,
 ) -> EpisodeResults:
     """Play ``num_episodes`` episodes of ``policy`` in ``env`` (batched over ``env.batch_size``).
 
@@ -97,6 +98,8 @@ def run_episodes(
     a stateful policy (the DT acting wrapper) sees ``step_count == 0`` at every episode start.
     ``deterministic`` evaluates the distribution's mean (``ExplorationType.DETERMINISTIC``);
     otherwise actions are sampled. ``on_episode`` is called with each finished episode.
+    ``seed`` reseeds the env first, so that calls with the same seed play the same initial
+    configurations (common random numbers for comparing policies; exact resumption).
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
@@ -104,6 +107,8 @@ def run_episodes(
     rounds = math.ceil(num_episodes / n_env)
     finals, returns, lengths, unstable, kept = [], [], [], [], []
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    if seed is not None:
+        env.set_seed(seed)
     bar = progress(total=num_episodes, desc=desc)
     with torch.no_grad(), set_exploration_type(mode):
         for _ in range(rounds):
