@@ -35,7 +35,7 @@ from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, rng_state
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.evaluation import run_episodes
 from trakdis.utils.logger import latest_run_dir
-from trakdis.utils.policies import close_env, PolicyHandle, load_encoder, load_policy, save_policy
+from trakdis.utils.policies import PolicyHandle, StateNormalizer, close_env, load_encoder, load_policy, save_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.training import Updater, episode_to_trajectory, mean_metrics
@@ -139,7 +139,19 @@ def main(argv=None) -> dict:
         obs_keys = ("state_estimate",)
     updater = Updater(loss, optimizer=cfg.optimizer, lr=cfg.lr, weight_decay=cfg.weight_decay,
                       warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None)
-    buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed)
+    # Teacher and student read states standardised with the teacher's statistics (the student's
+    # weights start as the teacher's, and the encoder's estimates live in state units).
+    normalizer = None
+    if teacher.normalizer is not None:
+        normalizer = StateNormalizer(teacher.normalizer.loc, teacher.normalizer.scale, keys=("state", "state_estimate"))
+    transform = normalizer
+    if not cfg.distill and cfg.state_noise > 0:
+        # No-Distill: noise on the encoded expert data at sampling time, in state units (before
+        # standardisation). With distillation the noise is already in the rollouts' estimates.
+        noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"])
+        transform = (lambda td: normalizer(noise(td))) if normalizer is not None else noise
+    buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
+                         transform=transform)
     counters = {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}
 
     state = run.resume_state()
@@ -160,10 +172,9 @@ def main(argv=None) -> dict:
         buffer.load_offline(offline, lengths)
         run.print(f"--no-distill: {data.shape[0]} expert episodes from {path}")
 
-    noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"]) if cfg.state_noise > 0 else None
     student_handle = PolicyHandle("student", task, horizon, actor=student, encoder=encoder,
                                   observation_key="state_estimate", target_return=teacher.target_return,
-                                  rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs)
+                                  rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs, normalizer=normalizer)
 
     def evaluate(handle, env, tag, prefix="eval"):
         was = student.training
@@ -183,7 +194,8 @@ def main(argv=None) -> dict:
     eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
     act_handle = student_handle if cfg.act == "student" else PolicyHandle(
         "teacher", task, horizon, actor=teacher.actor, encoder=encoder, observation_key="state",
-        target_return=teacher.target_return, rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs)
+        target_return=teacher.target_return, rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
+        normalizer=teacher.normalizer)
     # Rollouts carry both the true state and the encoder's (noisy) estimate.
     roll_env = act_handle.make_env(num_envs=cfg.num_envs, split="train", state_noise=cfg.state_noise,
                                    noise_seed=cfg.seed + 7919, parallel=cfg.parallel) if cfg.distill else None
@@ -211,10 +223,7 @@ def main(argv=None) -> dict:
             student.train()
             history = []
             for _ in progress(range(cfg.updates_per_round), desc=f"round {counters['rounds'] + 1}"):
-                batch = buffer.sample(cfg.batch_size)
-                if noise is not None and not cfg.distill:
-                    batch = noise(batch)
-                history.append(updater.step(batch.to(cfg.device)))
+                history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
             counters["rounds"] += 1
             counters["updates"] += cfg.updates_per_round
             run.log(counters["updates"], {**mean_metrics(history), **rollout_metrics, "round": counters["rounds"]})
@@ -236,7 +245,7 @@ def main(argv=None) -> dict:
     counters["final_eval"] = final
     save_policy(run.dir / "policy.pt", kind="student", task=task, horizon=horizon, dt_config=dt_cfg, actor=student,
                 observation_key="state_estimate", target_return=teacher.target_return, rtg_scale=teacher.rtg_scale,
-                env_kwargs=teacher.env_kwargs, encoder_file=enc_file,
+                env_kwargs=teacher.env_kwargs, encoder_file=enc_file, normalizer=normalizer,
                 extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
                        "state_noise": cfg.state_noise})
     checkpoint()

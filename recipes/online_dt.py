@@ -32,7 +32,7 @@ import torch
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.checkpoint import rng_state, set_rng_state
 from trakdis.utils.evaluation import run_episodes
-from trakdis.utils.policies import close_env, PolicyHandle, load_policy, save_policy
+from trakdis.utils.policies import PolicyHandle, StateNormalizer, close_env, load_policy, save_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.training import ModelConfig, Updater, episode_to_trajectory, mean_metrics
@@ -145,25 +145,33 @@ def main(argv=None) -> dict:
     n_params = sum(p.numel() for p in actor.parameters())
     run.print(f"{cfg.task}: DT with {n_params / 1e6:.2f}M parameters ({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
 
-    buffer = make_buffer(cfg.buffer_capacity, cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
-                         seed=cfg.seed)
-    counters = {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None}
+    counters = {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
+                "normalizer": None}
     state = run.resume_state()
     if state is not None:
-        updater.load_state_dict(state["updater"])
-        buffer.load_state_dict(state["buffer"])
         counters.update(state["counters"])
+        trajectories = lengths = None
     else:
         dataset = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
                                  log=run.print, progress=cfg.progress)
         trajectories, lengths = load_trajectories(dataset, keys=("state", "action", "reward", "normalized_performance"))
         trajectories = trajectories.to_tensordict()
-        buffer.load_offline(trajectories, lengths)
+        valid = torch.arange(trajectories.shape[1]).unsqueeze(0) < lengths.unsqueeze(1)
+        counters["normalizer"] = StateNormalizer.fit(trajectories["state"][valid]).state_dict()
         rets = trajectories["reward"].sum(dim=(-2, -1))
         final = trajectories["normalized_performance"][torch.arange(len(lengths)), lengths - 1]
         run.print(f"offline data: {trajectories.shape[0]} episodes from {dataset}; return {rets.mean():.3f} "
                   f"(best {rets.max():.3f}); final normalized performance {final.mean():.3f}")
         counters["best_return"] = float(rets.max())
+    # The DT reads standardised states (buffer windows and acting); data and envs stay raw.
+    normalizer = StateNormalizer.from_state_dict(counters["normalizer"])
+    buffer = make_buffer(cfg.buffer_capacity, cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
+                         seed=cfg.seed, transform=normalizer)
+    if state is not None:
+        updater.load_state_dict(state["updater"])
+        buffer.load_state_dict(state["buffer"])
+    else:
+        buffer.load_offline(trajectories, lengths)
 
     def checkpoint():
         run.save_checkpoint({"updater": updater.state_dict(), "buffer": buffer.state_dict(),
@@ -171,11 +179,11 @@ def main(argv=None) -> dict:
 
     def policy_file(path, kind="teacher"):
         save_policy(path, kind=kind, task=cfg.task, horizon=cfg.horizon, dt_config=dt_cfg, actor=actor,
-                    observation_key="state", target_return=eval_rtg, rtg_scale=cfg.rtg_scale)
+                    observation_key="state", target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
 
     eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else counters["best_return"]
     handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
-                          target_return=eval_rtg, rtg_scale=cfg.rtg_scale)
+                          target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
     eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
     if state is not None:  # after building the envs, so the RNG streams continue exactly
         set_rng_state(state["rng"])

@@ -95,3 +95,17 @@ def test_summary_and_tables(tmp_path):
     md = (tmp_path / "t.md").read_text().splitlines()
     assert md[0].startswith("| task | policy | n | mean") and "| ClothFold | expert | 4 | 1.500 |" in md[2]
     assert pd.read_csv(tmp_path / "t.csv")["mean"].iloc[0] == 1.5
+
+
+def test_close_env_keeps_thread_count():
+    from trakdis.utils.policies import close_env
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        env = SerialEnv(2, make)
+        env.rollout(2, policy)
+        close_env(env)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

@@ -92,3 +92,27 @@ def test_policy_and_encoder_files(tmp_path):
                                           "observation_key": "state"})
     with pytest.raises(CheckpointError, match="not a policy"):
         load_policy(tmp_path / "bad.pt")
+
+
+def test_state_normalizer_and_normalized_policy():
+    from tensordict.nn import TensorDictModule
+
+    from trakdis.utils.policies import NormalizedPolicy, StateNormalizer
+
+    states = torch.randn(50, 3) * torch.tensor([1.0, 10.0, 0.0]) + torch.tensor([5.0, -2.0, 1.0])
+    norm = StateNormalizer.fit(states, keys=("state", "state_estimate"))
+    out = norm(TensorDict({"state": states, "state_estimate": states.clone(), "other": states.clone()}, [50]))
+    assert torch.allclose(out["state"][:, :2].mean(0), torch.zeros(2), atol=1e-5)
+    assert torch.allclose(out["state"][:, :2].std(0), torch.ones(2), atol=1e-4)
+    assert torch.equal(out["state"], out["state_estimate"]) and torch.equal(out["other"], states)
+    assert norm.scale[2] == 1e-3  # constant dimension: clamped, no division by zero
+    again = StateNormalizer.from_state_dict(norm.state_dict())
+    assert torch.equal(again.loc, norm.loc) and again.keys == norm.keys
+    seen = {}
+    inner = TensorDictModule(lambda s: seen.setdefault("s", s.clone()).sum(-1, keepdim=True), ["state"], ["action"])
+    td = TensorDict({"state": states[:4].clone()}, [4])
+    NormalizedPolicy(inner, norm, "state")(td)
+    assert torch.allclose(seen["s"], norm.normalize(states[:4]))  # the policy saw normalised states
+    assert torch.equal(td["state"], states[:4]) and "action" in td.keys()  # the raw state is back
+    with pytest.raises(ValueError):
+        StateNormalizer(torch.zeros(2), torch.zeros(2))

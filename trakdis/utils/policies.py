@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import torch
+from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -35,6 +36,8 @@ __all__ = [
     "save_encoder",
     "load_encoder",
     "NormalizedEncoder",
+    "StateNormalizer",
+    "NormalizedPolicy",
 ]
 
 
@@ -113,6 +116,67 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
     return TransformedEnv(env, Compose(*transforms)) if transforms else env
 
 
+# --------------------------------------------------------------------------- state normalisation
+class StateNormalizer:
+    """``x -> (x - loc) / scale`` on the given keys of a TensorDict (returns it; values replaced, not
+    modified in place). Decision Transformers are trained on standardised states (as in DT/ODT):
+    the raw cloth coordinates differ by centimetres, far below the scale of the other token
+    embeddings. Used as the replay buffer's sampling transform; :class:`NormalizedPolicy` applies the
+    same map when acting, so the environment and the stored data stay in raw units."""
+
+    def __init__(self, loc, scale, keys=("state",)):
+        self.loc = torch.as_tensor(loc, dtype=torch.float32)
+        self.scale = torch.as_tensor(scale, dtype=torch.float32)
+        if self.loc.shape != self.scale.shape or self.loc.ndim != 1:
+            raise ValueError(f"StateNormalizer: loc {tuple(self.loc.shape)} and scale {tuple(self.scale.shape)} must be equal 1-d shapes")
+        if (self.scale <= 0).any():
+            raise ValueError("StateNormalizer: scale must be > 0")
+        self.keys = tuple(keys)
+
+    @classmethod
+    def fit(cls, states: torch.Tensor, keys=("state",), min_scale: float = 1e-3) -> "StateNormalizer":
+        """Mean and std over all leading dims of ``states`` ``[..., D]`` (std clamped to ``min_scale``)."""
+        flat = states.reshape(-1, states.shape[-1]).double()
+        return cls(flat.mean(0).float(), flat.std(0).clamp_min(min_scale).float(), keys)
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.loc.to(x.device)) / self.scale.to(x.device)
+
+    def __call__(self, td):
+        for key in self.keys:
+            if key in td.keys():
+                td.set(key, self.normalize(td.get(key)))
+        return td
+
+    def state_dict(self) -> dict:
+        return {"loc": self.loc.clone(), "scale": self.scale.clone(), "keys": list(self.keys)}
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, Any]) -> "StateNormalizer":
+        return cls(state["loc"], state["scale"], state.get("keys", ("state",)))
+
+
+class NormalizedPolicy(TensorDictModuleBase):
+    """Run ``policy`` on the normalised ``key`` and put the raw value back afterwards."""
+
+    def __init__(self, policy: nn.Module, normalizer: StateNormalizer, key: str):
+        super().__init__()
+        self.policy = policy
+        self.normalizer = normalizer
+        self.key = key
+        self.in_keys = list(getattr(policy, "in_keys", [key]))
+        self.out_keys = list(getattr(policy, "out_keys", ["action"]))
+
+    def forward(self, tensordict):
+        raw = tensordict.get(self.key)
+        tensordict.set(self.key, self.normalizer.normalize(raw))
+        try:
+            tensordict = self.policy(tensordict)
+        finally:
+            tensordict.set(self.key, raw)
+        return tensordict
+
+
 # --------------------------------------------------------------------------- encoder files
 class NormalizedEncoder(nn.Module):
     """``encoder(pixels) * std + mean``: the CNN regresses standardised states, this returns raw ones."""
@@ -165,6 +229,7 @@ def load_encoder(path: str | Path) -> tuple[NormalizedEncoder, dict[str, Any]]:
 # --------------------------------------------------------------------------- policy files
 def save_policy(path: str | Path, *, kind: str, task: str, horizon: int, dt_config, actor: nn.Module,
                 observation_key: str, target_return: float, rtg_scale: float,
+                normalizer: StateNormalizer | None = None,
                 env_kwargs: Mapping[str, Any] | None = None, encoder_file: Mapping[str, Any] | None = None,
                 extra: Mapping[str, Any] | None = None) -> Path:
     cfg = dt_config.to_dict() if hasattr(dt_config, "to_dict") else dataclasses.asdict(dt_config)
@@ -172,7 +237,8 @@ def save_policy(path: str | Path, *, kind: str, task: str, horizon: int, dt_conf
         "kind": kind, "task": task, "horizon": int(horizon), "dt_config": cfg,
         "observation_key": observation_key, "actor": actor.state_dict(),
         "target_return": float(target_return), "rtg_scale": float(rtg_scale),
-        "env_kwargs": dict(env_kwargs or {}), "encoder": encoder_file, **dict(extra or {}),
+        "env_kwargs": dict(env_kwargs or {}), "encoder": encoder_file,
+        "normalizer": None if normalizer is None else normalizer.state_dict(), **dict(extra or {}),
     })
 
 
@@ -191,6 +257,8 @@ class PolicyHandle:
     expert_noise: float = 0.0
     env_kwargs: dict = field(default_factory=dict)
     source: str = ""
+    normalizer: StateNormalizer | None = None
+    """standardisation of the observation the DT reads (None: raw)"""
 
     @property
     def uses_pixels(self) -> bool:
@@ -221,7 +289,8 @@ class PolicyHandle:
         from trakdis.modules import DTActingPolicy
 
         self.actor.eval()
-        return DTActingPolicy(self.actor, observation_key=self.observation_key)
+        policy = DTActingPolicy(self.actor, observation_key=self.observation_key)
+        return policy if self.normalizer is None else NormalizedPolicy(policy, self.normalizer, self.observation_key)
 
 
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
@@ -253,4 +322,5 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         data["kind"], data["task"], horizon or data["horizon"], actor=actor.eval(), encoder=encoder,
         observation_key=data["observation_key"], target_return=data["target_return"],
         rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
+        normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
     )
