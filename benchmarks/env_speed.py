@@ -132,6 +132,46 @@ def parallel_speedup(task, steps, seed, from_pixels, use_buffers=None):
     return (2 * steps / t_par) / (steps / t_single)
 
 
+def _gym_episode(task, steps, seed, ready=None, go=None):
+    from trakdis.envs import ClothEnv, expert_action
+
+    env = ClothEnv(task=task, horizon=steps, from_pixels=True)
+    obs, _ = env.reset(seed=seed)
+    if ready is not None:
+        ready.set()
+        go.wait()
+    t0 = time.perf_counter()
+    for t in range(steps):
+        obs, *_ = env.step(expert_action(task, obs["state"], t))
+    elapsed = time.perf_counter() - t0
+    env.close()
+    return elapsed
+
+
+def two_process_speedup(task, steps, seed):
+    """Throughput of 2 plain processes (no TorchRL) over 1: what the machine allows right now.
+
+    Spawned (forking a process that holds an EGL context can hang), timed from a start signal
+    sent once both children are ready, so interpreter start-up is not counted.
+    """
+    import multiprocessing as mp
+
+    t_single = _gym_episode(task, steps, seed)
+    ctx = mp.get_context("spawn")
+    go = ctx.Event()
+    readies = [ctx.Event() for _ in range(2)]
+    procs = [ctx.Process(target=_gym_episode, args=(task, steps, seed, r, go)) for r in readies]
+    for p in procs:
+        p.start()
+    for r in readies:
+        r.wait()
+    t0 = time.perf_counter()
+    go.set()
+    for p in procs:
+        p.join()
+    return 2 * t_single / (time.perf_counter() - t0)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=None)
@@ -147,7 +187,7 @@ def main(argv=None):
 
     print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()}, steps/episode {args.steps}")
     print(f"{'task':28s} {'state sps':>9s} {'pixel sps':>9s} {'s/100 px':>8s} {'env ms':>7s} "
-          f"{'raw ms':>7s} {'overhead':>8s} {'2-worker':>8s} {'2w nobuf':>8s}")
+          f"{'raw ms':>7s} {'overhead':>8s} {'2-worker':>8s} {'2w nobuf':>8s} {'2 procs':>8s}")
     for task in args.tasks or TASKS:
         env_t, raw_t, n_steps = gym_vs_raw(task, args.steps, args.seed)
         sps = torchrl_rate(task, args.steps, args.seed, from_pixels=False)
@@ -155,12 +195,14 @@ def main(argv=None):
         nan = float("nan")
         speedup = nan if args.no_parallel else parallel_speedup(task, args.steps, args.seed, True)
         speedup_nb = nan if args.no_parallel else parallel_speedup(task, args.steps, args.seed, True, False)
+        bound = nan if args.no_parallel else two_process_speedup(task, args.steps, args.seed)
         print(f"{task:28s} {sps:9.1f} {pps:9.1f} {100 / pps:8.2f} {1e3 * env_t / args.steps:7.2f} "
-              f"{1e3 * raw_t / args.steps:7.2f} {env_t / raw_t - 1:8.1%} {speedup:7.2f}x {speedup_nb:7.2f}x",
+              f"{1e3 * raw_t / args.steps:7.2f} {env_t / raw_t - 1:8.1%} {speedup:7.2f}x {speedup_nb:7.2f}x {bound:7.2f}x",
               flush=True)
     print("state/pixel sps: TorchRL env steps per second (expert policy included); env ms / raw ms: "
           "CPU time per step of the gym env vs a raw mj_step replay of the same episode; overhead = env/raw - 1; "
-          "2-worker: ParallelEnv(2) frames/s over one env's, with pixels (2w nobuf: use_buffers=False).")
+          "2-worker: ParallelEnv(2) frames/s over one env's, with pixels (2w nobuf: use_buffers=False); "
+          "2 procs: two plain processes running the gym env over one (the machine's bound right now).")
     return 0
 
 
