@@ -105,6 +105,8 @@ class ClothEnv(gym.Env):
         self.move_per_substep = float(move_per_substep)
         self.grasp_radius = float(grasp_radius)
         self.fixed_config_index = config_index
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
         self.image_size = image_size
         self._renderer = FrameRenderer(image_size, render_supersample) if (from_pixels or render_mode) else None
@@ -257,6 +259,10 @@ class ClothEnv(gym.Env):
         return np.clip(a.astype(np.float64), -1.0, 1.0).reshape(self.num_pickers, 4)
 
     def _update_grasps(self, picks: np.ndarray) -> None:
+        # Grasp = a MuJoCo ``connect`` equality between the picker (mocap body) and the vertex,
+        # retargeted at run time (no recompile). A kinematic grasp (setting the vertex's joints to
+        # the picker every step, like SoftGym's zero inverse mass) was tried and rejected: MuJoCo's
+        # soft edge constraints cannot follow a teleported vertex, its edges stretched up to 7x.
         m, d = self.model, self.data
         x = d.flexvert_xpos
         for i in range(self.num_pickers):
