@@ -46,3 +46,17 @@ def test_renderer_argument_errors():
         rendering.FrameRenderer(4)
     with pytest.raises(ValueError, match="render_supersample"):
         rendering.FrameRenderer(32, supersample=8)
+
+
+def test_importing_mujoco_first_is_explained():
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    code = ("import mujoco, trakdis.envs\n"
+            "try:\n"
+            "    trakdis.envs.ClothEnv(task='ClothFold', from_pixels=True).reset(seed=0)\n"
+            "    print('rendered')\n"
+            "except RuntimeError as e:\n"
+            "    print(e)\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    # either this machine has a display-less working default backend, or the error says why
+    assert "rendered" in out.stdout or "import trakdis before mujoco" in out.stdout, out.stdout

@@ -9,6 +9,7 @@ set. It must run before ``import mujoco``; ``trakdis.envs`` calls it on import.
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 
@@ -27,6 +28,13 @@ def configure_gl() -> str:
     if gl in ("egl", "osmesa"):
         os.environ.setdefault("PYOPENGL_PLATFORM", gl)
     return gl
+
+
+def mujoco_gl_backend() -> str | None:
+    """The GL backend the imported ``mujoco`` actually uses (``egl``, ``glfw``, ``osmesa``), or None."""
+    mujoco = sys.modules.get("mujoco")
+    ctx = getattr(mujoco, "GLContext", None)
+    return ctx.__module__.rsplit(".", 1)[-1] if ctx is not None else None
 
 
 class FrameRenderer:
@@ -59,7 +67,15 @@ class FrameRenderer:
         try:
             self._renderer = mujoco.Renderer(model, self.render_size, self.render_size)
         except Exception as err:  # noqa: BLE001 - re-raised with instructions
-            raise RuntimeError(GL_HELP.format(gl=os.environ.get("MUJOCO_GL"), err=err)) from err
+            msg = GL_HELP.format(gl=os.environ.get("MUJOCO_GL"), err=err)
+            loaded = mujoco_gl_backend()
+            wanted = os.environ.get("MUJOCO_GL", "")
+            if loaded and wanted and loaded != wanted:
+                # mujoco fixes its backend at import: it was imported before MUJOCO_GL was set
+                msg = (f"`mujoco` was imported before MUJOCO_GL={wanted} was set and uses the {loaded!r} "
+                       f"backend: export MUJOCO_GL={wanted} in the shell, or import trakdis before "
+                       "mujoco. " + msg)
+            raise RuntimeError(msg) from err
         self._model = model
 
     def render(self, data) -> np.ndarray:
