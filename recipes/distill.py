@@ -35,7 +35,7 @@ from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, rng_state
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.evaluation import run_episodes
 from trakdis.utils.logger import latest_run_dir
-from trakdis.utils.policies import PolicyHandle, StateNormalizer, close_env, load_encoder, load_policy, save_policy
+from trakdis.utils.policies import PolicyHandle, ProprioceptionOverride, StateNormalizer, close_env, load_encoder, load_policy, save_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.training import Updater, episode_to_trajectory, mean_metrics
@@ -56,6 +56,9 @@ class DistillConfig(RunConfig):
     """learn from the teacher's actions (--no-distill: imitate the expert dataset instead)"""
     state_noise: float = 0.0
     """std of Gaussian noise added to the estimated state while training (robustness)"""
+    proprio_pickers: bool = False
+    """take the picker positions of the student's state from proprioception (the true state)
+    instead of the encoder (a deviation from the paper's image-only student)"""
     act: Literal["student", "teacher"] = "student"
     """who acts in the training rollouts"""
     rounds: int = 10
@@ -144,12 +147,25 @@ def main(argv=None) -> dict:
     normalizer = None
     if teacher.normalizer is not None:
         normalizer = StateNormalizer(teacher.normalizer.loc, teacher.normalizer.scale, keys=("state", "state_estimate"))
-    transform = normalizer
+    steps = []  # applied in order to sampled windows, in state units, then standardisation
     if not cfg.distill and cfg.state_noise > 0:
         # No-Distill: noise on the encoded expert data at sampling time, in state units (before
         # standardisation). With distillation the noise is already in the rollouts' estimates.
-        noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"])
-        transform = (lambda td: normalizer(noise(td))) if normalizer is not None else noise
+        steps.append(StateNoise(cfg.state_noise, in_keys=["state_estimate"]))
+    from trakdis.envs import task_spec
+
+    proprio_dims = tuple(range(12, task_spec(task).state_dim)) if cfg.proprio_pickers else ()
+    if proprio_dims:
+        steps.append(ProprioceptionOverride(proprio_dims))
+        obs_keys = tuple(dict.fromkeys([*obs_keys, "state"]))
+    if normalizer is not None:
+        steps.append(normalizer)
+
+    def transform(td):
+        for step in steps:
+            td = step(td)
+        return td
+
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
                          transform=transform)
     counters = {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}
@@ -163,18 +179,19 @@ def main(argv=None) -> dict:
         # No-Distill: the expert dataset's images through the frozen encoder.
         path = ensure_dataset(cfg.data, task=task, horizon=horizon, seed=cfg.seed, pixels=True, log=run.print,
                               progress=cfg.progress)
-        data, lengths = load_trajectories(path, keys=("pixels", "action", "reward"))
+        data, lengths = load_trajectories(path, keys=("pixels", "action", "reward", "state"))
         with torch.no_grad():
             pixels = data.get("pixels")
             est = torch.cat([encoder(torch.as_tensor(pixels[i : i + 16])) for i in range(0, data.shape[0], 16)])
-        offline = data.select("action", "reward").to_tensordict()
+        offline = data.select("action", "reward", *(("state",) if cfg.proprio_pickers else ())).to_tensordict()
         offline.set("state_estimate", est)
         buffer.load_offline(offline, lengths)
         run.print(f"--no-distill: {data.shape[0]} expert episodes from {path}")
 
     student_handle = PolicyHandle("student", task, horizon, actor=student, encoder=encoder,
                                   observation_key="state_estimate", target_return=teacher.target_return,
-                                  rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs, normalizer=normalizer)
+                                  rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs, normalizer=normalizer,
+                                  proprio_dims=proprio_dims)
 
     def evaluate(handle, env, tag, prefix="eval"):
         was = student.training
@@ -247,7 +264,7 @@ def main(argv=None) -> dict:
                 observation_key="state_estimate", target_return=teacher.target_return, rtg_scale=teacher.rtg_scale,
                 env_kwargs=teacher.env_kwargs, encoder_file=enc_file, normalizer=normalizer,
                 extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
-                       "state_noise": cfg.state_noise})
+                       "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
     checkpoint()
     run.finish()
     run.print(f"eval normalized performance: teacher {counters['teacher_eval'] if counters['teacher_eval'] is not None else float('nan'):.3f}, "

@@ -94,12 +94,15 @@ def test_distill_files_and_resume(workdir, student):
 
 def test_distill_ablations(workdir, teacher, encoder):
     out = run_recipe(workdir, "distill", *distill_args("ablation", "--no-weight-copy", "--no-distill",
-                                                        "--state-noise", "1e-3", "--no-eval-teacher", *DATA))
+                                                        "--state-noise", "1e-3", "--no-eval-teacher",
+                                                        "--proprio-pickers", *DATA))
     assert "expert imitation" in out.stdout and "weight copy False" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "ablation")
     assert frame["train/loss_nll"].notna().sum() == 2 and "train/loss_distill" not in frame.columns
     ck = load_checkpoint(workdir / "runs" / "distill" / "ablation" / "policy.pt")
     assert ck["distill"] is False and ck["weight_copy"] is False and ck["state_noise"] == 1e-3
+    assert ck["proprio_dims"] == list(range(12, 18))  # ClothFold: two pickers after the 4 corners
+    assert load_policy(workdir / "runs" / "distill" / "ablation").proprio_dims == tuple(range(12, 18))
 
 
 def test_evaluate_student_and_expert(workdir, student):

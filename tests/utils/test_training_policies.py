@@ -116,3 +116,13 @@ def test_state_normalizer_and_normalized_policy():
     assert torch.equal(td["state"], states[:4]) and "action" in td.keys()  # the raw state is back
     with pytest.raises(ValueError):
         StateNormalizer(torch.zeros(2), torch.zeros(2))
+
+
+def test_proprioception_override():
+    from trakdis.utils.policies import ProprioceptionOverride
+
+    td = TensorDict({"state": torch.arange(6.0).expand(2, 6).clone(), "state_estimate": torch.zeros(2, 6)}, [2])
+    ProprioceptionOverride(range(4, 6))(td)
+    assert td["state_estimate"][0].tolist() == [0, 0, 0, 0, 4, 5]
+    with pytest.raises(KeyError, match="state"):
+        ProprioceptionOverride([1])(TensorDict({"state_estimate": torch.zeros(1, 2)}, [1]))

@@ -38,6 +38,7 @@ __all__ = [
     "NormalizedEncoder",
     "StateNormalizer",
     "NormalizedPolicy",
+    "ProprioceptionOverride",
 ]
 
 
@@ -156,20 +157,44 @@ class StateNormalizer:
         return cls(state["loc"], state["scale"], state.get("keys", ("state",)))
 
 
-class NormalizedPolicy(TensorDictModuleBase):
-    """Run ``policy`` on the normalised ``key`` and put the raw value back afterwards."""
+class ProprioceptionOverride:
+    """Replace ``dims`` of ``dst`` (the encoder's estimate) by the same dims of ``src`` (the true
+    state): the picker positions are known to the robot without vision. Callable on TensorDicts
+    (windows or env steps); returns the TensorDict."""
 
-    def __init__(self, policy: nn.Module, normalizer: StateNormalizer, key: str):
+    def __init__(self, dims, src: str = "state", dst: str = "state_estimate"):
+        self.dims = torch.as_tensor(list(dims), dtype=torch.long)
+        self.src, self.dst = src, dst
+
+    def __call__(self, td):
+        if self.dims.numel() and self.dst in td.keys():
+            if self.src not in td.keys():
+                raise KeyError(f"ProprioceptionOverride: {self.src!r} is needed to fill dims {self.dims.tolist()} of {self.dst!r}")
+            est = td.get(self.dst).clone()
+            est[..., self.dims] = td.get(self.src)[..., self.dims].to(est.dtype)
+            td.set(self.dst, est)
+        return td
+
+
+class NormalizedPolicy(TensorDictModuleBase):
+    """Run ``policy`` on the normalised ``key`` (after the optional ``pre`` map, e.g. a
+    :class:`ProprioceptionOverride`) and put the raw value back afterwards."""
+
+    def __init__(self, policy: nn.Module, normalizer: StateNormalizer | None, key: str, pre=None):
         super().__init__()
         self.policy = policy
         self.normalizer = normalizer
         self.key = key
+        self.pre = pre
         self.in_keys = list(getattr(policy, "in_keys", [key]))
         self.out_keys = list(getattr(policy, "out_keys", ["action"]))
 
     def forward(self, tensordict):
         raw = tensordict.get(self.key)
-        tensordict.set(self.key, self.normalizer.normalize(raw))
+        if self.pre is not None:
+            self.pre(tensordict)
+        value = tensordict.get(self.key)
+        tensordict.set(self.key, value if self.normalizer is None else self.normalizer.normalize(value))
         try:
             tensordict = self.policy(tensordict)
         finally:
@@ -259,6 +284,8 @@ class PolicyHandle:
     source: str = ""
     normalizer: StateNormalizer | None = None
     """standardisation of the observation the DT reads (None: raw)"""
+    proprio_dims: tuple = ()
+    """dims of the student's estimate taken from the true state (picker positions), if any"""
 
     @property
     def uses_pixels(self) -> bool:
@@ -290,7 +317,10 @@ class PolicyHandle:
 
         self.actor.eval()
         policy = DTActingPolicy(self.actor, observation_key=self.observation_key)
-        return policy if self.normalizer is None else NormalizedPolicy(policy, self.normalizer, self.observation_key)
+        pre = ProprioceptionOverride(self.proprio_dims) if self.proprio_dims else None
+        if self.normalizer is None and pre is None:
+            return policy
+        return NormalizedPolicy(policy, self.normalizer, self.observation_key, pre=pre)
 
 
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
@@ -323,4 +353,5 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         observation_key=data["observation_key"], target_return=data["target_return"],
         rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
         normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
+        proprio_dims=tuple(data.get("proprio_dims") or ()),
     )
