@@ -25,9 +25,9 @@ Writes ``runs/distill/<name>/`` with ``config.json``, ``log.csv``, ``curves.png`
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import torch
 
@@ -35,11 +35,11 @@ from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, rng_state
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.evaluation import run_episodes
 from trakdis.utils.logger import latest_run_dir
-from trakdis.utils.policies import PolicyHandle, ProprioceptionOverride, StateNormalizer, close_env, load_encoder, load_policy, save_policy
+from trakdis.utils.policies import (PolicyHandle, ProprioceptionOverride, StateNormalizer, close_env, load_encoder,
+                                   load_policy, save_policy)
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.training import Updater, episode_to_trajectory, mean_metrics
-from dataclasses import field
 
 
 @dataclass

@@ -15,9 +15,7 @@ import sys
 from dataclasses import dataclass
 from typing import Literal, Optional
 
-import numpy as np
 import pandas as pd
-import torch
 
 from trakdis.utils.evaluation import episode_frames, run_episodes, summarize, write_summary_table
 from trakdis.utils.policies import close_env, load_policy

@@ -26,7 +26,6 @@ import sys
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
-import numpy as np
 import torch
 
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer

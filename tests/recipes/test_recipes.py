@@ -5,7 +5,6 @@ import json
 import cv2
 import pandas as pd
 import pytest
-import torch
 
 from trakdis.utils.checkpoint import load_checkpoint
 from trakdis.utils.policies import load_policy

@@ -2,7 +2,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from trakdis.modules import DTConfig, StateEncoder, make_dt_actor
+from trakdis.modules import StateEncoder, make_dt_actor
 from trakdis.objectives import DTLoss
 from trakdis.utils.checkpoint import CheckpointError, save_checkpoint
 from trakdis.utils.policies import NormalizedEncoder, load_encoder, load_policy, save_encoder, save_policy

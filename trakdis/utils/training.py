@@ -9,7 +9,6 @@
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -130,6 +129,3 @@ def episode_to_trajectory(episode: TensorDictBase, keys: Sequence[str] = _STEP_K
         raise KeyError("episode_to_trajectory: the episode has no ('next', 'reward')")
     return out
 
-
-def replace_fields(obj: Any, **kw: Any) -> Any:
-    return dataclasses.replace(obj, **kw)
