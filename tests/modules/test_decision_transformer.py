@@ -1,6 +1,6 @@
 import pytest
 import torch
-from tensordict import TensorDict
+from dt_windows import random_window
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import TanhNormal
 
@@ -15,19 +15,7 @@ def small_config(**kw):
 
 
 def window(b=4, k=6, *, generator=None, pad=None):
-    g = generator or torch.Generator().manual_seed(0)
-    mask = torch.ones(b, k, dtype=torch.bool)
-    if pad is not None:
-        for i, p in enumerate(pad):
-            mask[i, :p] = False
-    return TensorDict(
-        observation=torch.randn(b, k, S, generator=g),
-        action=torch.rand(b, k, A, generator=g) * 1.8 - 0.9,
-        return_to_go=torch.randn(b, k, 1, generator=g),
-        timestep=torch.arange(k).expand(b, k).clone(),
-        mask=mask,
-        batch_size=[b, k],
-    )
+    return random_window(b, k, S, A, generator=generator, pad=pad)
 
 
 def run(dt, td):

@@ -1,6 +1,6 @@
 import pytest
 import torch
-from tensordict import TensorDict
+from dt_windows import random_window
 
 from trakdis.modules import DTConfig, StateEncoder, copy_teacher_weights, make_dt_actor
 from trakdis.objectives import DistillationLoss
@@ -21,20 +21,7 @@ def actors():
 
 
 def window(seed=0, pad=(0, 1, 3)):
-    g = torch.Generator().manual_seed(seed)
-    mask = torch.ones(B, K, dtype=torch.bool)
-    for i, p in enumerate(pad):
-        mask[i, :p] = False
-    return TensorDict(
-        state=torch.randn(B, K, S, generator=g),
-        state_estimate=torch.randn(B, K, S, generator=g),
-        pixels=torch.randint(0, 256, (B, K, 32, 32, 3), dtype=torch.uint8, generator=g),
-        action=torch.rand(B, K, A, generator=g) * 1.8 - 0.9,
-        return_to_go=torch.randn(B, K, 1, generator=g),
-        timestep=torch.arange(K).expand(B, K).clone(),
-        mask=mask,
-        batch_size=[B, K],
-    )
+    return random_window(B, K, S, A, pad=pad, seed=seed, state_keys=("state", "state_estimate"), pixels=32)
 
 
 def test_loss_is_student_nll_of_teacher_mean_action(actors):

@@ -1,6 +1,6 @@
 import pytest
 import torch
-from tensordict import TensorDict
+from dt_windows import random_window
 from torchrl.objectives import OnlineDTLoss
 
 from trakdis.modules import DTConfig, make_dt_actor
@@ -17,18 +17,7 @@ def actor():
 
 
 def window(pad=(0, 0, 0, 0), seed=0):
-    g = torch.Generator().manual_seed(seed)
-    mask = torch.ones(B, K, dtype=torch.bool)
-    for i, p in enumerate(pad):
-        mask[i, :p] = False
-    return TensorDict(
-        observation=torch.randn(B, K, S, generator=g),
-        action=torch.rand(B, K, A, generator=g) * 1.8 - 0.9,
-        return_to_go=torch.randn(B, K, 1, generator=g),
-        timestep=torch.arange(K).expand(B, K).clone(),
-        mask=mask,
-        batch_size=[B, K],
-    )
+    return random_window(B, K, S, A, pad=pad, seed=seed)
 
 
 def test_matches_torchrl_online_dt_loss_fixed_temperature(actor):
