@@ -48,15 +48,28 @@ def test_renderer_argument_errors():
         rendering.FrameRenderer(32, supersample=8)
 
 
-def test_importing_mujoco_first_is_explained():
+@pytest.mark.parametrize("first", ["mujoco", "torchrl.envs"])
+def test_importing_mujoco_first_still_renders_offscreen(first):
+    # torchrl.envs imports mujoco, so a TorchRL user's natural import order loads mujoco before
+    # trakdis could set MUJOCO_GL: the renderer must still use the offscreen backend.
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
-    code = ("import mujoco, trakdis.envs\n"
-            "try:\n"
-            "    trakdis.envs.ClothEnv(task='ClothFold', from_pixels=True).reset(seed=0)\n"
-            "    print('rendered')\n"
-            "except RuntimeError as e:\n"
-            "    print(e)\n")
+    code = (f"import {first}, trakdis.envs\n"
+            "from trakdis.envs import rendering\n"
+            "obs, _ = trakdis.envs.ClothEnv(task='ClothFold', from_pixels=True).reset(seed=0)\n"
+            "print('rendered', obs['pixels'].shape, obs['pixels'].std() > 0, rendering.mujoco_gl_backend())\n")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    # either this machine has a display-less working default backend, or the error says why
-    assert "rendered" in out.stdout or "import trakdis before mujoco" in out.stdout, out.stdout
+    assert "rendered (32, 32, 3) True egl" in out.stdout, out.stdout
+
+
+def test_explicit_backend_chosen_before_mujoco_is_kept():
+    env = {k: v for k, v in os.environ.items() if k not in ("PYOPENGL_PLATFORM",)}
+    env["MUJOCO_GL"] = "glfw"
+    code = ("import mujoco, os\n"
+            "os.environ['MUJOCO_GL'] = 'egl'\n"
+            "from trakdis.envs import rendering\n"
+            "rendering.adopt_configured_backend()\n"
+            "print(rendering.mujoco_gl_backend())\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "glfw", out.stdout

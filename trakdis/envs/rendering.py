@@ -30,6 +30,34 @@ def configure_gl() -> str:
     return gl
 
 
+def adopt_configured_backend() -> None:
+    """Make an already imported ``mujoco`` render with the backend ``MUJOCO_GL`` names now.
+
+    ``mujoco`` reads ``MUJOCO_GL`` once, at import; ``import torchrl.envs`` (or any library that
+    imports mujoco) before ``import trakdis`` therefore leaves it on its default, GLFW, which needs a
+    display. ``mujoco.Renderer`` looks its context class up in
+    ``mujoco.rendering.classic.gl_context`` each time it is built, so when mujoco saw *no*
+    ``MUJOCO_GL`` at import and ``MUJOCO_GL`` is now ``egl`` or ``osmesa``, that class is swapped for
+    the offscreen one. A backend the user chose explicitly before importing mujoco is never touched.
+    """
+    if "mujoco" not in sys.modules:
+        return  # mujoco will read MUJOCO_GL itself when imported
+    try:
+        from mujoco.rendering.classic import gl_context
+    except ImportError:  # another mujoco layout: keep its own choice (bind() explains failures)
+        return
+    wanted = os.environ.get("MUJOCO_GL", "").lower().strip()
+    if getattr(gl_context, "_MUJOCO_GL", None) != "" or wanted not in ("egl", "osmesa"):
+        return
+    if wanted == "egl":
+        from mujoco.egl import GLContext
+    else:
+        from mujoco.osmesa import GLContext
+    gl_context.GLContext = GLContext
+    gl_context._MUJOCO_GL = wanted
+    sys.modules["mujoco"].GLContext = GLContext
+
+
 def mujoco_gl_backend() -> str | None:
     """The GL backend the imported ``mujoco`` actually uses (``egl``, ``glfw``, ``osmesa``), or None."""
     mujoco = sys.modules.get("mujoco")
@@ -65,6 +93,7 @@ class FrameRenderer:
 
         self.close()
         try:
+            adopt_configured_backend()
             self._renderer = mujoco.Renderer(model, self.render_size, self.render_size)
         except Exception as err:  # noqa: BLE001 - re-raised with instructions
             msg = GL_HELP.format(gl=os.environ.get("MUJOCO_GL"), err=err)
