@@ -126,3 +126,20 @@ def test_proprioception_override():
     assert td["state_estimate"][0].tolist() == [0, 0, 0, 0, 4, 5]
     with pytest.raises(KeyError, match="state"):
         ProprioceptionOverride([1])(TensorDict({"state_estimate": torch.zeros(1, 2)}, [1]))
+
+
+def test_parallel_batched_env_matches_serial():
+    from trakdis.utils.policies import close_env, make_batched_env
+
+    rollouts = []
+    for parallel in (False, True):
+        env = make_batched_env("ClothFoldDiagonalUnpinned", num_envs=2, parallel=parallel, seed=3, env_kwargs={"horizon": 4})
+        try:
+            torch.manual_seed(0)
+            rollouts.append(env.rollout(4, break_when_any_done=False))
+        finally:
+            close_env(env)
+    serial, parallel = rollouts
+    assert parallel.batch_size == serial.batch_size == torch.Size([2, 4])
+    torch.testing.assert_close(parallel["state"], serial["state"])
+    torch.testing.assert_close(parallel["next", "reward"], serial["next", "reward"])

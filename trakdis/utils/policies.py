@@ -73,7 +73,10 @@ def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, se
     factory = functools.partial(make_env, task, from_pixels=from_pixels, image_size=image_size, split=split,
                                 **dict(env_kwargs or {}))
     cls = ParallelEnv if parallel and num_envs > 1 else SerialEnv
-    kwargs = {"mp_start_method": "spawn"} if cls is ParallelEnv else {}
+    # spawn: forking a process that already holds a GL context hangs its children. use_buffers=False:
+    # with shared buffers TorchRL 0.14's main process spins while the workers step, which on 2 cores
+    # takes a core from them (benchmarks/env_speed.py: 1.16x vs 1.54x for 2 workers on ClothFold).
+    kwargs = {"mp_start_method": "spawn", "use_buffers": False} if cls is ParallelEnv else {}
     env = cls(num_envs, factory, **kwargs)
     if seed is not None:
         env.set_seed(seed)
