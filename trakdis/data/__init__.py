@@ -1,11 +1,7 @@
 """Expert datasets on disk and the offline-to-online trajectory replay buffer."""
 
-# ``import torchrl.envs`` imports mujoco, which fixes its GL backend at import time: choose it first
-# (MUJOCO_GL=egl when unset) so that pixel collection works whatever the user imported before.
-from trakdis.envs.rendering import configure_gl as _configure_gl
-
-_configure_gl()
-
+# The GL backend for pixel collection is chosen by ``trakdis/__init__.py`` (imported before this
+# subpackage) and, if mujoco was loaded earlier, by ``trakdis.envs.rendering.adopt_configured_backend``.
 from .buffer import TrajectoryReplayBuffer, WindowSampler
 from .dataset import (
     DATASET_FORMAT,
