@@ -6,8 +6,12 @@ heads, MLP width 4x, dropout), at context lengths 5, 30 and 100, on the CPU and 
 available. All ratios printed come from this one run.
 
 * training step: a batch of ``--batch`` windows, forward (log-likelihood + 1-sample entropy),
-  backward and an Adam step; reported in samples (windows) per second, best of ``--rounds``
-  rounds of ``--steps`` steps alternating between the two implementations.
+  backward and an Adam step; reported in samples (windows) per second, best and median of
+  ``--rounds`` rounds of ``--steps`` steps alternating between the two implementations. A
+  ``where`` line splits profiled steps of each into matrix products (mm/addmm/bmm), the Adam
+  step and everything else, and gives the ratio that would be reached if everything but our
+  matrix products and Adam step took no time (the best ratio times our profiled total over
+  our matmul + Adam time): an upper bound for the training-step ratio at this size.
 * acting: per-step latency for ``--envs`` environments at steps 10, 100 and 1000 of one long
   episode (the fastest of the 10 steps starting there: robust to other processes on the CPU). TorchRL has no stateful acting
   wrapper; its per-step cost is one forward over the last-K window (what
@@ -23,6 +27,7 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib.util
+import statistics
 import time
 
 import torch
@@ -97,7 +102,7 @@ class TrainStep:
 
 
 def time_train(steps_by_name: dict, device, steps: int, rounds: int, warmup: int = 2) -> dict:
-    """Samples/s per step function; rounds alternate between them and the best round counts.
+    """Samples/s per step function over rounds that alternate between them: ``{name: [per round]}``.
 
     Alternating and keeping the best round makes the ratio robust to other processes
     competing for the CPU (this benchmark is meant to run on a shared machine too).
@@ -105,7 +110,7 @@ def time_train(steps_by_name: dict, device, steps: int, rounds: int, warmup: int
     for fn in steps_by_name.values():
         for _ in range(warmup):
             fn()
-    best = dict.fromkeys(steps_by_name, 0.0)
+    rates = {name: [] for name in steps_by_name}
     for _ in range(rounds):
         for name, fn in steps_by_name.items():
             gc.collect()
@@ -114,8 +119,28 @@ def time_train(steps_by_name: dict, device, steps: int, rounds: int, warmup: int
             for _ in range(steps):
                 fn()
             sync(device)
-            best[name] = max(best[name], steps * fn.td.shape[0] / (time.perf_counter() - t0))
-    return best
+            rates[name].append(steps * fn.td.shape[0] / (time.perf_counter() - t0))
+    return rates
+
+
+MATMUL_OPS = {"aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm", "aten::addmm_", "aten::baddbmm_"}
+
+
+def profile_train(fn, device, steps: int = 3) -> dict:
+    """ms per step (profiled, so a little slower than timed) in matrix products, Adam, and the rest."""
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=activities) as prof:
+        for _ in range(steps):
+            fn()
+        sync(device)
+    events = prof.key_averages()
+    attr = "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    total = sum(getattr(e, attr) for e in events) / steps / 1e3
+    matmul = sum(getattr(e, attr) for e in events if e.key in MATMUL_OPS) / steps / 1e3
+    adam = sum(e.cpu_time_total for e in events if e.key.startswith("Optimizer.step")) / steps / 1e3
+    return {"total": total, "matmul": matmul, "adam": adam, "other": total - matmul - adam}
 
 
 @torch.no_grad()
@@ -174,14 +199,28 @@ def run_device(device, args):
             steps["torchrl"] = TrainStep(
                 OnlineDTLoss(theirs, alpha_init=0.1, fixed_alpha=True), ["loss_log_likelihood", "loss_entropy"], td
             )
-        sps = time_train(steps, device, args.steps, args.rounds)
-        line = f"K={k:4d} train  trakdis {sps['trakdis']:9.1f} samples/s ({n_ours / 1e6:.2f}M params)"
+        rates = time_train(steps, device, args.steps, args.rounds)
+        best = {name: max(r) for name, r in rates.items()}
+        med = {name: statistics.median(r) for name, r in rates.items()}
+        line = f"K={k:4d} train  trakdis {best['trakdis']:9.1f} samples/s (median {med['trakdis']:.1f}; {n_ours / 1e6:.2f}M params)"
         if theirs is not None:
             line += (
-                f" | torchrl {sps['torchrl']:9.1f} samples/s ({n_theirs / 1e6:.2f}M params)"
-                f" | ratio {sps['trakdis'] / sps['torchrl']:5.2f}x"
+                f" | torchrl {best['torchrl']:9.1f} samples/s (median {med['torchrl']:.1f}; {n_theirs / 1e6:.2f}M params)"
+                f" | ratio {best['trakdis'] / best['torchrl']:5.2f}x best, {med['trakdis'] / med['torchrl']:5.2f}x median"
             )
         print(line, flush=True)
+        if args.profile:
+            split = {name: profile_train(fn, device) for name, fn in steps.items()}
+            line = f"K={k:4d} where  " + " | ".join(
+                f"{name} {p['total']:7.1f} ms/step = matmul {p['matmul']:6.1f} ({p['matmul'] / p['total']:4.0%}) + Adam {p['adam']:4.1f} + other {p['other']:6.1f}"
+                for name, p in split.items()
+            )
+            if theirs is not None:
+                # the timed ratio if our non-matmul, non-Adam work took no time at all
+                o = split["trakdis"]
+                bound = best["trakdis"] / best["torchrl"] * o["total"] / (o["matmul"] + o["adam"])
+                line += f" | ratio bound (our other = 0) {bound:4.2f}x"
+            print(line, flush=True)
         ours.eval()
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             lat_by_mode = {}
@@ -206,7 +245,8 @@ def main():
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--envs", type=int, default=1)
     p.add_argument("--steps", type=int, default=5, help="timed training steps per round")
-    p.add_argument("--rounds", type=int, default=3, help="alternating timing rounds (the best counts)")
+    p.add_argument("--rounds", type=int, default=7, help="alternating timing rounds (best and median reported)")
+    p.add_argument("--no-profile", dest="profile", action="store_false", help="skip the profiled time split")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--devices", nargs="+", default=None, help="default: cpu, plus cuda when available")
     args = p.parse_args()

@@ -21,8 +21,10 @@ def run_episode(env, task, seed, expert_action, noise=0.0, rng=None):
     frames = [obs.get("pixels")]
     for t in range(env.horizon):
         action = expert_action(task, obs["state"], t)
-        if noise > 0:
-            action = np.clip(action + noise * rng.standard_normal(action.shape), -1, 1).astype(np.float32)
+        if noise > 0:  # as ExpertPolicy: noise on the picker movements, the grasp command stays +-1
+            moves = action.reshape(-1, 4)[:, :3]
+            moves += noise * rng.standard_normal(moves.shape)
+            np.clip(moves, -1, 1, out=moves)
         obs, reward, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             break

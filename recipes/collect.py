@@ -40,7 +40,7 @@ class CollectConfig:
     episodes: int = DataConfig.episodes
     """episodes to collect"""
     expert_noise: float = DataConfig.expert_noise
-    """std of the Gaussian noise added to the expert's actions"""
+    """std of the Gaussian noise added to the expert's picker movements (the grasp command stays +-1)"""
     path: Optional[str] = None
     """dataset directory (default: <root>/<task>_<episodes>ep_h<horizon>_noise<sigma>[_px<size>])"""
     root: str = DataConfig.root

@@ -83,6 +83,8 @@ class DistillConfig(RunConfig):
     """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
     buffer_capacity: int = 200
     """trajectories kept for distillation"""
+    early_windows: bool = True
+    """also sample windows that begin before an episode's first step (see online_dt.py)"""
     data: DataConfig = field(default_factory=DataConfig)
     """expert dataset for --no-distill"""
     eval_episodes: int = 10
@@ -135,10 +137,10 @@ def main(argv=None) -> dict:
               f"weight copy {cfg.weight_copy}, {'distillation' if cfg.distill else 'expert imitation (--no-distill)'}")
 
     if cfg.distill:
-        loss = DistillationLoss(student, teacher.actor, kl_coef=cfg.kl_coef)
+        loss = DistillationLoss(student, teacher.actor, kl_coef=cfg.kl_coef, action_eps=dt_cfg.action_eps)
         obs_keys = ("state", "state_estimate")
     else:
-        loss = DTLoss(student, lambda_entropy=0.0)
+        loss = DTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
         obs_keys = ("state_estimate",)
     updater = Updater(loss, optimizer=cfg.optimizer, lr=cfg.lr, weight_decay=cfg.weight_decay,
                       warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None)
@@ -167,7 +169,7 @@ def main(argv=None) -> dict:
         return td
 
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
-                         transform=transform)
+                         transform=transform, early_windows=cfg.early_windows)
     counters = {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}
 
     state = run.resume_state()

@@ -55,8 +55,11 @@ class OnlineDTConfig(RunConfig):
     """optimiser (the paper: lamb)"""
     lr: float = 1e-3
     """learning rate"""
+    min_lr_fraction: float = 0.1
+    """the learning rate decays (cosine) from --lr to this fraction of it by the end of offline
+    pretraining (1: constant after the warm-up, as in ODT)"""
     online_lr: Optional[float] = None
-    """learning rate of the online phase (default: --lr)"""
+    """constant learning rate of the online phase (default: the last offline one, --lr x --min-lr-fraction)"""
     weight_decay: float = 1e-4
     """weight decay"""
     warmup_steps: int = 100
@@ -73,6 +76,9 @@ class OnlineDTConfig(RunConfig):
     """return-to-go scale (rewards and targets are multiplied by it)"""
     buffer_capacity: int = 1000
     """trajectories in the replay buffer (Online DT: 1000)"""
+    early_windows: bool = True
+    """also sample windows that begin before an episode's first step, so its first K-1 steps are
+    trained as often as the others (the DT/ODT reference: --no-early-windows)"""
     offline_updates: int = 1500
     """offline pretraining updates"""
     online_rounds: int = 8
@@ -83,6 +89,10 @@ class OnlineDTConfig(RunConfig):
     """updates after each online rollout"""
     exploration_rtg: Optional[float] = None
     """initial return-to-go of the online rollouts (default: the evaluation target)"""
+    offline_control: bool = False
+    """run the online schedule (rollouts, updates, evaluations) but never add the rollouts to the
+    buffer: the offline-only control with the same number of updates, to tell what the online
+    data changed from what more training changed"""
     exploration: Literal["mean", "sample"] = "mean"
     """actions of the online rollouts: the policy's mean, or samples as in Online DT (on ClothFold,
     sampled rollouts scored ~0 while the mean scored ~0.4: one flipped grasp drops the cloth)"""
@@ -107,10 +117,10 @@ class OnlineDTConfig(RunConfig):
 
 PRESETS = {
     "paper": {
-        "model": {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30},
+        "model": {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30, "dropout": 0.1},
         "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000, "batch_size": 256,
         "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
-        "updates_per_round": 300, "eval_rtg": -1.0, "eval_episodes": 100, "eval_every": 50,
+        "updates_per_round": 300, "min_lr_fraction": 1.0, "eval_rtg": -1.0, "eval_episodes": 100, "eval_every": 50,
     },
 }
 
@@ -142,9 +152,11 @@ def main(argv=None) -> dict:
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     dt_cfg = cfg.model.dt_config(spec.state_dim, spec.action_dim, cfg.horizon)
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
-    loss = DTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature)
+    loss = DTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
+                  action_eps=dt_cfg.action_eps)
     updater = Updater(loss, optimizer=cfg.optimizer, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                      warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None)
+                      warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None,
+                      decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
     n_params = sum(p.numel() for p in actor.parameters())
     run.print(f"{cfg.task}: DT with {n_params / 1e6:.2f}M parameters ({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
 
@@ -169,7 +181,7 @@ def main(argv=None) -> dict:
     # The DT reads standardised states (buffer windows and acting); data and envs stay raw.
     normalizer = StateNormalizer.from_state_dict(counters["normalizer"])
     buffer = make_buffer(cfg.buffer_capacity, cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
-                         seed=cfg.seed, transform=normalizer)
+                         seed=cfg.seed, transform=normalizer, early_windows=cfg.early_windows)
     if state is not None:
         updater.load_state_dict(state["updater"])
         buffer.load_state_dict(state["buffer"])
@@ -228,10 +240,7 @@ def main(argv=None) -> dict:
             explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
-            if cfg.online_lr is not None:
-                for group in updater.optimizer.param_groups:
-                    group["lr"] = cfg.online_lr
-                updater.scheduler.base_lrs = [cfg.online_lr] * len(updater.optimizer.param_groups)
+            updater.set_constant_lr(cfg.online_lr if cfg.online_lr is not None else cfg.lr * cfg.min_lr_fraction)
             explore_env = handle.make_env(num_envs=cfg.num_envs, split="train", parallel=cfg.parallel,
                                           target_return=explore_rtg)
             try:
@@ -241,7 +250,7 @@ def main(argv=None) -> dict:
                                        keep_episodes=True, desc="rollout",
                                        seed=cfg.seed + 1000 * (counters["rounds"] + 1))
                     actor.train()
-                    for ep in res.episodes:
+                    for ep in res.episodes if not cfg.offline_control else ():
                         buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action")))
                     counters["rounds"] += 1
                     history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in

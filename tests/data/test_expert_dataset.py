@@ -78,9 +78,20 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
     assert meta["stats"] == ref_meta["stats"]
 
 
-def test_parallel_workers(tmp_path):
+def test_parallel_workers(tmp_path, monkeypatch):
     # fork: the workers need not re-import torch (spawn and pickling are covered in tests/transforms)
-    steps, meta = load_dataset(_collect(tmp_path / "par", num_episodes=3, num_workers=2, mp_start_method="fork"))
+    import torchrl
+
+    # as in a recipe: torchrl imported with 2 threads (its shutdown restores up to that), then 1 asked for
+    monkeypatch.setattr(torchrl, "_THREAD_POOL_INIT", 2)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        steps, meta = load_dataset(_collect(tmp_path / "par", num_episodes=3, num_workers=2, mp_start_method="fork"))
+        # TorchRL's ParallelEnv shutdown raises the thread count; the collection puts it back
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
     assert steps.batch_size == (3, H) and meta["config"]["chunk_size"] == 2
     _check_episodes(steps, meta["lengths"])
     # different workers and chunks got different seeds

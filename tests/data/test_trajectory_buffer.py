@@ -109,6 +109,35 @@ def test_full_windows_and_length_proportional_sampling():
     assert (t[:, 1:] - t[:, :-1] == 1).all()
 
 
+@pytest.mark.parametrize("early", [False, True])
+def test_step_coverage_and_early_windows(early):
+    # one trajectory of 12 steps, K = 4; count how often each step is a real (masked-in) window step
+    K, T = 4, 12
+    td, lengths = _trajs([-1.0], T=T, lengths=[T])
+    rb = TrajectoryReplayBuffer(capacity=1, context_len=K, max_len=T, seed=0, early_windows=early)
+    rb.load_offline(td, lengths)
+    assert rb.total_steps == T
+    batch = rb.sample(20000)
+    steps = batch["state"][..., 1][batch["mask"]].long()
+    share = torch.bincount(steps, minlength=T).float() / batch["mask"].shape[0]
+    last = batch["timestep"][:, -1]
+    # windows stay contiguous, end at their last real step and are left-padded
+    n = batch["mask"].sum(-1)
+    assert (batch["timestep"][:, -1] - batch["timestep"].gather(1, (K - n).unsqueeze(1)).squeeze(1) == n - 1).all()
+    if early:
+        # every step lies in K of the T + K - 1 possible windows; every step ends some window
+        torch.testing.assert_close(share, torch.full((T,), K / (T + K - 1)), atol=0.01, rtol=0)
+        assert set(last.tolist()) == set(range(T))
+    else:
+        # ODT reference: windows start inside the trajectory, step 0 is in 1 of T windows
+        assert abs(share[0].item() - 1 / T) < 0.01 and abs(share[6].item() - K / T) < 0.02
+        assert set(last.tolist()) == set(range(K - 1, T))
+    # the sampler's state (and its mode) round-trips
+    rb2 = TrajectoryReplayBuffer(capacity=1, context_len=K, max_len=T, seed=0, early_windows=not early)
+    rb2.sampler.load_state_dict(rb.sampler.state_dict())
+    assert rb2.sampler.early_windows == early and rb2.sampler.num_windows == rb.sampler.num_windows
+
+
 def test_collector_layout_transform_and_errors():
     T = 5
     traj = TensorDict(

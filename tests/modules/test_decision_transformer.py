@@ -34,6 +34,9 @@ def test_config_presets_and_validation():
         DTConfig(18, 8, log_std_min=2.0, log_std_max=-5.0)
     with pytest.raises(ValueError, match="activation"):
         TransformerConfig(activation="swish")
+    with pytest.raises(ValueError, match="loc_bound"):
+        DTConfig(18, 8, loc_bound=-1.0)
+    assert DTConfig(18, 8).action_eps == 1e-6 and abs(DTConfig(18, 8, loc_bound=5.0).action_eps - 9.08e-5) < 1e-7
 
 
 def test_shapes_and_extra_batch_dims():
@@ -156,3 +159,29 @@ def test_gradients_reach_all_actor_parameters():
     actor.get_dist(td).log_prob(td["action"]).mean().backward()
     no_grad = [n for n, p in actor.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
     assert no_grad == []
+
+
+def test_training_mode_with_dropout_keeps_causality_and_padding_invariance():
+    # same seed -> same dropout masks; the chunked CPU attention path must still be causal and
+    # blind to padded content (the eval-mode tests above go through SDPA)
+    torch.manual_seed(0)
+    dt = DecisionTransformer(small_config(context_len=40, dropout=0.2, attn_dropout=0.3)).train()
+    pad = [0, 7, 39, 20]
+    td = window(k=40, pad=pad)
+    torch.manual_seed(1)
+    h = run(dt, td)
+    td2 = td.clone()
+    td2["observation"][~td2["mask"]] = float("nan")
+    td2["action"][~td2["mask"]] = float("inf")
+    td2["return_to_go"][~td2["mask"]] = 1e6
+    torch.manual_seed(1)
+    h2 = run(dt, td2)
+    assert torch.isfinite(h2).all()
+    torch.testing.assert_close(h2[td["mask"]], h[td["mask"]], rtol=0, atol=1e-5)
+    td3 = td.clone()
+    td3["observation"][:, 30:] += 1.0
+    td3["action"][:, 29:] = -td3["action"][:, 29:]  # a_29 comes after s_29; a_39 is never seen
+    torch.manual_seed(1)
+    h3 = run(dt, td3)
+    torch.testing.assert_close(h3[:, :30], h[:, :30], rtol=0, atol=1e-5)
+    assert not torch.allclose(h3[:, 30:], h[:, 30:], atol=1e-3)

@@ -125,3 +125,88 @@ def test_targets_at_the_bounds_stay_finite(actor):
     td["action"][..., -1] = torch.where(torch.rand(B, K) > 0.5, 1.0, -1.0)  # e.g. pick open/close
     out = DTLoss(actor)(td)
     assert torch.isfinite(out["loss_nll"])
+
+
+def test_closed_form_tanh_normal_equals_the_distribution_path(actor):
+    from torchrl.modules import TanhNormal
+
+    from trakdis.objectives.dt_loss import tanh_normal_log_prob, tanh_normal_rsample_log_prob
+
+    td = window(pad=(0, 2, 5, 3))
+    fast = DTLoss(actor, lambda_entropy=0.1)
+    generic = DTLoss(actor, lambda_entropy=0.1)
+    assert fast._tanh_normal_keys == ("loc", "scale")
+    generic._tanh_normal_keys = None  # force TanhNormal objects (the path for other distributions)
+    outs, grads = [], []
+    for loss in (fast, generic):
+        torch.manual_seed(7)
+        out = loss(td.clone())
+        outs.append(out)
+        grads.append(torch.autograd.grad(out["loss_nll"] + out["loss_entropy"], list(loss.actor_network_params.values(True, True))))
+    for key in ("loss_nll", "loss_entropy", "entropy"):
+        torch.testing.assert_close(outs[0][key], outs[1][key], rtol=0, atol=0)
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b)
+    # the functions themselves, including saturated targets and extreme locations
+    loc = torch.tensor([[0.0, 5.0, -30.0], [0.3, -2.0, 12.0]])
+    scale = torch.tensor([[1.0, 0.01, 3.0], [0.0067, 0.0067, 0.0067]])  # e^-5: the smallest std
+    value = torch.tensor([[0.5, 1.0, -1.0], [-0.999, 0.2, 0.9999999]])
+    dist = TanhNormal(loc, scale, low=-1.0, high=1.0)
+    torch.testing.assert_close(tanh_normal_log_prob(loc, scale, value), dist.log_prob(value), rtol=0, atol=0)
+    torch.manual_seed(2)
+    _, lp = dist.rsample_and_log_prob((3,))
+    torch.manual_seed(2)
+    torch.testing.assert_close(tanh_normal_rsample_log_prob(loc, scale, 3), lp, rtol=0, atol=0)
+
+
+def test_other_distributions_use_the_generic_path():
+    from tensordict.nn import TensorDictModule
+    from torchrl.data import Bounded
+    from torchrl.modules import ProbabilisticActor, TanhNormal
+
+    from trakdis.modules.decision_transformer import DTActor
+
+    torch.manual_seed(0)
+    cfg = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
+    module = TensorDictModule(DTActor(cfg), in_keys=["observation", "action", "return_to_go", "timestep", "mask"], out_keys=["loc", "scale"])
+    actor = ProbabilisticActor(
+        module, in_keys=["loc", "scale"], out_keys=["action"], spec=Bounded(-2.0, 2.0, shape=(A,)),
+        distribution_class=TanhNormal, distribution_kwargs={"low": -2.0, "high": 2.0},
+    )
+    loss = DTLoss(actor, lambda_entropy=0.1, action_eps=0.0)
+    assert loss._tanh_normal_keys is None
+    td = window()
+    torch.manual_seed(3)
+    out = loss(td.clone())
+    torch.manual_seed(3)
+    ref = OnlineDTLoss(actor, alpha_init=0.1, fixed_alpha=True)(td.clone())
+    torch.testing.assert_close(out["loss_nll"], ref["loss_log_likelihood"])
+    torch.testing.assert_close(out["loss_entropy"], ref["loss_entropy"])
+
+
+@pytest.mark.parametrize("loc_bound", [0.0, 5.0])
+def test_own_saturated_mean_actions_as_targets(loc_bound):
+    # Online fine-tuning writes the policy's own mean actions back as targets. A grasp command the
+    # policy is sure of has a large pre-tanh mean and the smallest std; unbounded, its action
+    # rounds to +-1.0 in float32, is clamped to atanh(1 - 1e-6) = 7.25 and costs a huge NLL.
+    cfg = DTConfig(state_dim=4, action_dim=2, embed_dim=16, n_layer=1, n_head=2, context_len=3, dropout=0.0,
+                   attn_dropout=0.0, loc_bound=loc_bound)
+    actor = make_dt_actor(cfg)
+    dt = actor.module[0].module
+    with torch.no_grad():
+        dt.head_loc.weight.zero_()
+        dt.head_loc.bias.fill_(12.0)  # a saturated, confident grasp command
+        dt.head_log_std.weight.zero_()
+        dt.head_log_std.bias.fill_(-20.0)  # log-std at its lower bound (-5)
+    td = random_window(8, 3, 4, 2)
+    with torch.no_grad():
+        out = actor(td.clone())
+    if loc_bound:
+        assert out["loc"].max() < loc_bound
+    td["action"] = out["loc"].tanh()  # the mean action, as stored by a rollout
+    loss = DTLoss(actor, lambda_entropy=0.0, action_eps=cfg.action_eps)
+    nll = float(loss(td)["loss_nll"])
+    if loc_bound:
+        assert nll < 0  # the own mean action is the mode: a high likelihood, not a penalty
+    else:
+        assert nll > 1e3

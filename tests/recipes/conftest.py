@@ -71,7 +71,7 @@ def workdir(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def dataset(workdir) -> Path:
     run_recipe(workdir, "collect", "--horizon", HORIZON, "--episodes", 4, "--root", "datasets", "--num-envs", 1)
-    path = workdir / "datasets" / f"ClothFold_4ep_h{HORIZON}_noise0.2_px32"
+    path = workdir / "datasets" / f"ClothFold_4ep_h{HORIZON}_noise0.1_px32"
     assert json.loads((path / "meta.json").read_text())["format"] == "trakdis-dataset"
     return path
 

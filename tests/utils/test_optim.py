@@ -44,3 +44,44 @@ def test_warmup():
     for _ in range(6):
         lrs.append(opt.param_groups[0]["lr"]); opt.step(); sched.step()
     assert lrs == [0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
+
+
+def test_warmup_then_cosine_decay_then_constant():
+    import pytest
+
+    p = torch.nn.Parameter(torch.ones(1))
+    opt = torch.optim.SGD([p], lr=1.0)
+    sched = make_warmup_scheduler(opt, 2, decay_steps=6, min_fraction=0.1)
+    lrs = []
+    for _ in range(9):
+        lrs.append(opt.param_groups[0]["lr"]); opt.step(); sched.step()
+    assert lrs[:2] == [0.5, 1.0]
+    assert all(a > b for a, b in zip(lrs[1:5], lrs[2:6]))  # strictly decreasing down to update 6
+    assert lrs[5] == pytest.approx(0.1) and lrs[6:] == pytest.approx([0.1] * 3)
+    with pytest.raises(ValueError, match="min_fraction"):
+        make_warmup_scheduler(opt, 2, decay_steps=6, min_fraction=0.0)
+
+
+def test_updater_switches_to_a_constant_lr():
+    from tensordict import TensorDict
+
+    from trakdis.utils.training import Updater
+
+    class Quadratic(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.ones(2))
+
+        def forward(self, td):
+            return TensorDict(loss_q=(self.w**2).sum())
+
+    up = Updater(Quadratic(), optimizer="adam", lr=1e-2, warmup_steps=1, decay_steps=4, min_lr_fraction=0.5)
+    lrs = [up.step(TensorDict())["lr"] for _ in range(6)]
+    assert lrs[3:] == [5e-3] * 3
+    up.set_constant_lr(1e-4)
+    assert [up.step(TensorDict())["lr"] for _ in range(3)] == [1e-4] * 3
+    state = up.state_dict()
+    up2 = Updater(Quadratic(), optimizer="adam", lr=1e-2, warmup_steps=1, decay_steps=4, min_lr_fraction=0.5)
+    up2.load_state_dict(state)
+    up2.set_constant_lr(1e-4)
+    assert up2.step(TensorDict())["lr"] == 1e-4

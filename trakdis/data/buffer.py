@@ -11,7 +11,9 @@ Semantics (ODT, Zheng et al. 2022, and its reference code):
   (i.e. a trajectory with probability proportional to its length, then a uniform start in it), the
   window covers up to ``K`` steps from there and is left-padded to ``K`` with ``mask`` False and
   zero values; ``return_to_go`` is relabelled from the stored rewards at sampling time
-  (hindsight, times ``rtg_scale``); ``timestep`` is the step index in the episode.
+  (hindsight, times ``rtg_scale``); ``timestep`` is the step index in the episode. With
+  ``early_windows=True`` (used by the recipes) windows may also begin up to ``K - 1`` steps before
+  the first step, so that the first steps of an episode are trained as often as the others.
 
 TorchRL parts and why:
 
@@ -63,16 +65,24 @@ class WindowSampler(Sampler):
         capacity: number of trajectory slots.
         context_len: window length ``K``.
         seed: seeds the sampler's own ``torch.Generator`` (``None``: global RNG).
+        early_windows: also draw windows that begin up to ``K - 1`` steps *before* a trajectory's
+            first step (left-padded), so that every step lies in ``K`` possible windows. With
+            ``False`` (the DT/ODT reference: starts inside the trajectory) step ``t < K - 1`` lies
+            in only ``t + 1`` of them: the first step of an episode is trained ~K times less
+            often than the others, although every acting context of the first ``K - 1`` steps
+            is such a window. Trajectories are then drawn with probability proportional to
+            ``length + K - 1``.
     """
 
-    def __init__(self, capacity: int, context_len: int, seed: int | None = None):
+    def __init__(self, capacity: int, context_len: int, seed: int | None = None, early_windows: bool = False):
         super().__init__()
         if context_len < 1:
             raise ValueError(f"WindowSampler: context_len must be >= 1, got {context_len}")
         self.capacity = int(capacity)
         self.context_len = int(context_len)
+        self.early_windows = bool(early_windows)
         self.lengths = torch.zeros(self.capacity, dtype=torch.long)
-        self._cdf = torch.zeros(self.capacity, dtype=torch.long)
+        self._update_cdf()
         self.seed = seed
         self._generator = None
         if seed is not None:
@@ -81,34 +91,50 @@ class WindowSampler(Sampler):
     def set_lengths(self, index: torch.Tensor, lengths: torch.Tensor) -> None:
         """Records the lengths of the trajectories just written at ``index`` (O(capacity), writes only)."""
         self.lengths[index] = lengths.to(torch.long)
-        self._cdf = torch.cumsum(self.lengths, 0)
+        self._update_cdf()
+
+    def _update_cdf(self) -> None:
+        # number of possible window starts per trajectory
+        starts = self.lengths + (self.context_len - 1) * (self.lengths > 0) if self.early_windows else self.lengths
+        self._starts = starts
+        self._cdf = torch.cumsum(starts, 0)
 
     @property
     def total_steps(self) -> int:
+        """Number of stored steps."""
+        return int(self.lengths.sum())
+
+    @property
+    def num_windows(self) -> int:
+        """Number of distinct windows (window starts) that can be drawn."""
         return int(self._cdf[-1]) if self.capacity else 0
 
     def sample(self, storage, batch_size: int) -> tuple[tuple[torch.Tensor, torch.Tensor], dict]:
-        total = self.total_steps
+        total = self.num_windows
         if total == 0:
             raise RuntimeError("WindowSampler: the buffer holds no steps; load or add trajectories first")
         K = self.context_len
         u = (torch.rand(batch_size, generator=self._generator, dtype=torch.float64) * total).long().clamp_(max=total - 1)
         traj = torch.searchsorted(self._cdf, u, right=True)
-        start = u - (self._cdf[traj] - self.lengths[traj])
-        n_valid = torch.minimum(self.lengths[traj] - start, torch.tensor(K))
+        start = u - (self._cdf[traj] - self._starts[traj])
+        if self.early_windows:
+            start = start - (K - 1)  # may be negative: the window begins before the first step
+        first = start.clamp(min=0)
+        n_valid = torch.minimum(self.lengths[traj], start + K) - first
         pad = K - n_valid
         j = torch.arange(K)
         mask = j.unsqueeze(0) >= pad.unsqueeze(1)
-        steps = torch.where(mask, start.unsqueeze(1) + j.unsqueeze(0) - pad.unsqueeze(1), start.unsqueeze(1))
+        steps = torch.where(mask, first.unsqueeze(1) + j.unsqueeze(0) - pad.unsqueeze(1), first.unsqueeze(1))
+        start = first
         traj_k = traj.unsqueeze(1).expand(batch_size, K)
         return (traj_k, steps), {"mask": mask, "start": start, "trajectory": traj}
 
     def _empty(self):
         self.lengths.zero_()
-        self._cdf.zero_()
+        self._update_cdf()
 
     def state_dict(self) -> dict[str, Any]:
-        out = {"lengths": self.lengths.clone(), "context_len": self.context_len}
+        out = {"lengths": self.lengths.clone(), "context_len": self.context_len, "early_windows": self.early_windows}
         if self._generator is not None:
             out["generator"] = self._generator.get_state()
         return out
@@ -120,8 +146,9 @@ class WindowSampler(Sampler):
                 f"{self.capacity}"
             )
         self.lengths.copy_(state_dict["lengths"])
-        self._cdf = torch.cumsum(self.lengths, 0)
         self.context_len = int(state_dict["context_len"])
+        self.early_windows = bool(state_dict.get("early_windows", self.early_windows))
+        self._update_cdf()
         if "generator" in state_dict and self._generator is not None:
             self._generator.set_state(state_dict["generator"])
 
@@ -161,6 +188,9 @@ class TrajectoryReplayBuffer:
         device: device of the sampled windows (storage stays on CPU).
         transform: optional callable applied to each sampled window TensorDict after relabelling
             (e.g. ``trakdis.transforms.EncoderTransform`` or ``StateNoise``).
+        early_windows: also sample windows that begin before a trajectory's first step, so the
+            first ``K - 1`` steps are trained as often as the others (see :class:`WindowSampler`;
+            ``False`` is the DT/ODT reference sampling).
 
     Example:
         >>> rb = TrajectoryReplayBuffer(capacity=1000, context_len=20, max_len=100, keys=("state", "action"))
@@ -180,6 +210,7 @@ class TrajectoryReplayBuffer:
         seed: int | None = None,
         device: torch.device | str | None = None,
         transform=None,
+        early_windows: bool = False,
     ):
         if capacity < 1 or max_len < 1:
             raise ValueError(f"TrajectoryReplayBuffer: capacity ({capacity}) and max_len ({max_len}) must be >= 1")
@@ -193,7 +224,7 @@ class TrajectoryReplayBuffer:
         self.rtg_scale = float(rtg_scale)
         self.device = None if device is None else torch.device(device)
         self.transform = transform
-        self.sampler = WindowSampler(self.capacity, self.context_len, seed=seed)
+        self.sampler = WindowSampler(self.capacity, self.context_len, seed=seed, early_windows=early_windows)
         self.writer = RoundRobinWriter()
         self.storage = LazyTensorStorage(self.capacity)
         self._rb = ReplayBuffer(storage=self.storage, sampler=self.sampler, writer=self.writer)

@@ -195,6 +195,8 @@ def collect_expert_dataset(
         )
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
+    from trakdis.envs import EXPERT_VERSION
+
     config = {
         "task": task,
         "num_episodes": int(num_episodes),
@@ -207,6 +209,7 @@ def collect_expert_dataset(
         "horizon": int(horizon),
         "custom_env": make_env_fn is not None,
         "custom_policy": make_policy_fn is not None,
+        "expert_version": None if make_policy_fn is not None else EXPERT_VERSION,
     }
     tmp = partial_path(path)
     progress_file = tmp / "progress.json"
@@ -246,6 +249,11 @@ def collect_expert_dataset(
     data = None
     if chunks_done > 0:
         data = TensorDict.load_memmap(tmp / "data")
+    # TorchRL 0.14 changes torch's intra-op thread count when it starts and shuts down a
+    # ParallelEnv (it lowers it by the number of workers, then raises it again, up to the initial
+    # default of all cores). Measured: a recipe that set 1 thread and collected its dataset first
+    # trained with 2 OpenMP threads afterwards, ~5x slower per update on a loaded 2-core machine.
+    threads = torch.get_num_threads()
     if chunks_done < num_chunks:
         env = ParallelEnv(W, env_fn, mp_start_method=mp_start_method) if W > 1 else env_fn()
         policy = _ReseedablePolicy(policy_fn)
@@ -287,6 +295,7 @@ def collect_expert_dataset(
         finally:
             bar.close()
             collector.shutdown()
+            torch.set_num_threads(threads)
     else:
         bar.close()
 

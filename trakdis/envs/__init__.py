@@ -17,7 +17,7 @@ from trakdis.envs.cloth_env import (  # noqa: E402
     ClothFoldEnv,
     ENV_CLASSES,
 )
-from trakdis.envs.experts import ExpertPolicy, expert_action  # noqa: E402
+from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, expert_action  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskSpec, cloth_config, task_spec  # noqa: E402
 from trakdis.envs.torchrl_env import make_env  # noqa: E402
 
@@ -27,6 +27,7 @@ for _task, _cls in ENV_CLASSES.items():
         _gym.register(id=_id, entry_point=f"{_cls.__module__}:{_cls.__name__}")
 
 __all__ = [
+    "EXPERT_VERSION",
     "TASKS",
     "TaskSpec",
     "ClothConfig",

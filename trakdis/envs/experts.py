@@ -14,7 +14,11 @@ from a dropped corner:
   current picker position (it passes through the target and the picker, centre on the table
   line through both), the picker advances ``dphi`` along it per step; two pickers share the
   slower one's angle so the folded edge stays straight.
-* *done*: the source corner lies on the target corner -> release and lift.
+* *done*: the source corner lies on the target corner -> release and lift. A released corner
+  that settles within ``placed_radius`` of its target stays done (the picker keeps away): without
+  this hysteresis the expert re-grasped a corner that sprang back a few millimetres past
+  ``done_radius`` every 3-5 steps until the episode ended, a chattering grasp signal that a
+  learner had to imitate.
 
 At ``step_count >= release_step`` every picker releases (the episode is scored at its end).
 """
@@ -27,6 +31,10 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from trakdis.envs.specs import check_task, task_spec
+
+# Bumped whenever the expert's behaviour changes; recorded in datasets (``config.expert_version``).
+# 2: placed corners stay placed (no re-grasp chattering); noise on the movements only.
+EXPERT_VERSION = 2
 
 # (source corner, target corner) per picker; corners are blocks 0..3 of the state: c00, c0N, cN0, cNN
 FOLD_PLAN = {
@@ -55,6 +63,7 @@ def expert_action(
     release_step: int = 95,
     hold_radius: float = 0.05,
     done_radius: float = 0.02,
+    placed_radius: float = 0.08,
 ) -> np.ndarray:
     """Expert action for ``state`` of shape ``[*B, state_dim]`` -> ``[*B, action_dim]`` float32.
 
@@ -67,7 +76,9 @@ def expert_action(
         layer_height: height above the target corner where the source corner is laid (m).
         release_step: from this step on every picker releases and lifts.
         hold_radius: a picker this close to its lifted source corner is taken to hold it.
-        done_radius: the source corner counts as placed when this close (horizontally) to the target.
+        done_radius: a held source corner is released when this close (horizontally) to the target.
+        placed_radius: a source corner that is not held counts as placed (nothing left to do) when
+            this close (horizontally) to the target and low.
     """
     check_task(task)
     spec = task_spec(task)
@@ -89,7 +100,10 @@ def expert_action(
     tgt_top = tgt + np.array([0.0, 0.0, layer_height])
 
     d_src = np.linalg.norm(pickers - src, axis=-1)  # [*B, P]
-    src_on_tgt = (np.linalg.norm((src - tgt)[..., :2], axis=-1) < done_radius) & (src[..., 2] - tgt[..., 2] < 0.025)
+    src_tgt_xy = np.linalg.norm((src - tgt)[..., :2], axis=-1)
+    src_low = src[..., 2] - tgt[..., 2] < 0.025
+    src_on_tgt = (src_tgt_xy < done_radius) & src_low
+    src_placed = (src_tgt_xy < placed_radius) & src_low
     # The MuJoCo grasp constraint is soft: a lifted corner hangs up to ~4 cm below/behind the
     # picker. A corner still on the table is held only with the picker right on it (the approach
     # comes from straight above, so the vertex grasped then is the corner itself); a lifted corner
@@ -97,7 +111,7 @@ def expert_action(
     lifted = src[..., 2] > tgt[..., 2] + 0.008
     holding = (d_src < 0.01) | (lifted & (d_src < hold_radius))
     releasing = (t >= release_step)[..., None]
-    done = src_on_tgt | releasing
+    done = src_on_tgt | (src_placed & ~holding) | releasing
     carry = holding & ~done
     approach = ~holding & ~done
 
@@ -143,8 +157,11 @@ class ExpertPolicy(TensorDictModuleBase):
     """Scripted expert as a TensorDict module: reads ``"state"``, ``"step_count"``; writes ``"action"``.
 
     Stateless and batched (any leading batch shape), so it runs inside ``SerialEnv``/``ParallelEnv``
-    rollouts and TorchRL collectors. ``noise`` is the std of Gaussian noise added to the action
-    (then clipped to [-1, 1]), drawn from a generator seeded with ``seed``.
+    rollouts and TorchRL collectors. ``noise`` is the std of Gaussian noise added to the picker
+    movements ``[dx, dy, dz]`` (then clipped to [-1, 1]), drawn from a generator seeded with
+    ``seed``. The grasp command stays exactly +-1: the env thresholds it at 0, so noise on it
+    changes no behaviour, but it turned a binary target into a spread of values near +-1 whose
+    tanh-Gaussian fit had a pre-tanh std of ~3 (a sampled action then released the cloth).
     """
 
     def __init__(self, task: str, noise: float = 0.0, seed: int | None = None, **expert_kwargs):
@@ -164,6 +181,8 @@ class ExpertPolicy(TensorDictModuleBase):
         step_np = 0 if step is None else step.detach().cpu().numpy()
         action = expert_action(self.task, state.detach().cpu().numpy(), step_np, **self.expert_kwargs)
         if self.noise > 0:
-            action = np.clip(action + self.noise * self._rng.standard_normal(action.shape), -1.0, 1.0)
+            moves = action.reshape(*action.shape[:-1], -1, 4)[..., :3]  # a view into ``action``
+            moves += self.noise * self._rng.standard_normal(moves.shape)
+            np.clip(moves, -1.0, 1.0, out=moves)
         tensordict.set("action", torch.as_tensor(action, dtype=torch.float32, device=state.device))
         return tensordict

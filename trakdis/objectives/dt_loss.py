@@ -5,13 +5,18 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
+from torchrl.modules import TanhNormal
 from torchrl.modules.distributions.utils import rsample_and_log_prob
 from torchrl.objectives import LossModule
 
-__all__ = ["DTLoss", "masked_mean", "clamp_action"]
+__all__ = ["DTLoss", "masked_mean", "clamp_action", "tanh_normal_log_prob", "tanh_normal_rsample_log_prob"]
+
+_LOG_2 = math.log(2.0)
+_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 
 def masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -25,6 +30,61 @@ def masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
 def clamp_action(action: torch.Tensor, eps: float) -> torch.Tensor:
     """Clamp targets into ``[-1 + eps, 1 - eps]``: a TanhNormal density is degenerate at exactly +-1."""
     return action.clamp(-1.0 + eps, 1.0 - eps) if eps > 0 else action
+
+
+def _normal_log_prob(x, loc, scale, log_scale):
+    # torch.distributions.Normal.log_prob, op for op (same rounding)
+    return -((x - loc) ** 2) / (2 * scale**2) - log_scale - _LOG_SQRT_2PI
+
+
+def _tanh_log_det(x):
+    # log |d tanh(x) / dx| = log(1 - tanh(x)^2) = 2 (log 2 - x - softplus(-2x)): stable for large |x|
+    # (torch.distributions.TanhTransform.log_abs_det_jacobian)
+    return 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x))
+
+
+def tanh_normal_log_prob(loc, scale, value, log_scale=None) -> torch.Tensor:
+    """``TanhNormal(loc, scale, low=-1, high=1).log_prob(value)`` in closed form (last dim = event).
+
+    The same operations as TorchRL's ``TanhNormal`` (safe ``atanh`` clamped at the dtype's
+    resolution, the Normal log-density, the stable tanh log-Jacobian), without building the
+    distribution and its transforms.
+    """
+    eps = torch.finfo(value.dtype).resolution
+    x = value.clamp(-(1.0 - eps), 1.0 - eps).atanh()
+    log_scale = scale.log() if log_scale is None else log_scale
+    return -_tanh_log_det(x).sum(-1) + _normal_log_prob(x, loc, scale, log_scale).sum(-1)
+
+
+def tanh_normal_rsample_log_prob(loc, scale, n: int, log_scale=None) -> torch.Tensor:
+    """Log-probabilities ``[n, *batch]`` of ``n`` reparameterised samples of ``TanhNormal(loc, scale)``.
+
+    Draws the same standard normals as TorchRL's ``TanhNormal.rsample_and_log_prob((n,))`` (so
+    the same samples under the same seed) and scores the pre-tanh values the same way.
+    """
+    eps = torch.empty((n, *loc.shape), dtype=loc.dtype, device=loc.device).normal_()
+    x = loc + eps * scale
+    log_scale = scale.log() if log_scale is None else log_scale
+    return _normal_log_prob(x, loc, scale, log_scale).sum(-1) - _tanh_log_det(x).sum(-1)
+
+
+def _tanh_normal_keys(actor) -> tuple[NestedKey, NestedKey] | None:
+    """The ``(loc, scale)`` keys when ``actor``'s policy is TorchRL's ``TanhNormal`` over [-1, 1]."""
+    if not isinstance(actor, ProbabilisticTensorDictSequential) or getattr(actor, "return_composite", False):
+        return None
+    prob = actor.module[-1]
+    if not isinstance(prob, ProbabilisticTensorDictModule) or prob.distribution_class is not TanhNormal:
+        return None
+    kwargs = dict(prob.distribution_kwargs)
+    try:
+        if set(kwargs) - {"low", "high"} or float(kwargs.get("low", -1.0)) != -1.0 or float(kwargs.get("high", 1.0)) != 1.0:
+            return None
+    except (TypeError, ValueError, RuntimeError):  # e.g. per-dimension bounds
+        return None
+    keys = {(k[-1] if isinstance(k, tuple) else k): v for k, v in zip(prob.dist_keys, prob.in_keys)}
+    if set(keys) != {"loc", "scale"}:
+        return None
+    return keys["loc"], keys["scale"]
 
 
 def get_mask(tensordict: TensorDictBase, key: NestedKey, like: torch.Tensor, owner: str) -> torch.Tensor:
@@ -110,6 +170,7 @@ class DTLoss(LossModule):
         self.register_buffer("target_entropy", torch.tensor(float(target_entropy), device=device))
         self.samples_mc_entropy = int(samples_mc_entropy)
         self.action_eps = float(action_eps)
+        self._tanh_normal_keys = _tanh_normal_keys(actor_network)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -138,12 +199,26 @@ class DTLoss(LossModule):
         target = tensordict.get(self.tensor_keys.action_target)
         if target.requires_grad:
             raise RuntimeError(f"DTLoss: the target action {self.tensor_keys.action_target!r} must not require grad")
+        target = clamp_action(target, self.action_eps)
+        tanh_keys = self._tanh_normal_keys
         with self.actor_network_params.to_module(self.actor_network):
-            dist = self.actor_network.get_dist(tensordict.copy())
-        log_prob = dist.log_prob(clamp_action(target, self.action_eps))
+            if tanh_keys is None:
+                dist = self.actor_network.get_dist(tensordict.copy())
+            else:  # default TanhNormal policy: closed form, same numbers, no distribution objects
+                params = self.actor_network.get_dist_params(tensordict.copy())
+        if tanh_keys is None:
+            log_prob = dist.log_prob(target)
+            entropy = self.entropy(dist)
+        else:
+            loc, scale = params.get(tanh_keys[0]), params.get(tanh_keys[1])
+            log_scale = scale.log()
+            log_prob = tanh_normal_log_prob(loc, scale, target, log_scale)
+            entropy = -tanh_normal_rsample_log_prob(loc, scale, self.samples_mc_entropy, log_scale).mean(0)
         mask = get_mask(tensordict, self.tensor_keys.mask, log_prob, "DTLoss")
-        entropy = masked_mean(self.entropy(dist), mask)
-        out = {"loss_nll": -masked_mean(log_prob, mask), "loss_entropy": -self.alpha * entropy}
+        weight = mask.to(log_prob.dtype)
+        denom = weight.sum().clamp_min(1.0)  # masked_mean, with the mask converted once
+        entropy = (entropy * weight).sum() / denom
+        out = {"loss_nll": -((log_prob * weight).sum() / denom), "loss_entropy": -self.alpha * entropy}
         if self.learn_temperature:
             out["loss_alpha"] = self.log_alpha.exp() * (entropy - self.target_entropy).detach()
         out["entropy"] = entropy.detach()

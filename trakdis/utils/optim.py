@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Iterable
 
+import math
+
 import torch
 
 __all__ = ["Lamb", "make_optimizer", "make_warmup_scheduler"]
@@ -72,7 +74,27 @@ def make_optimizer(name: str, params, *, lr: float, weight_decay: float = 0.0) -
     raise ValueError(f"unknown optimizer {name!r}; use 'adamw', 'adam' or 'lamb'")
 
 
-def make_warmup_scheduler(optimizer: torch.optim.Optimizer, warmup_steps: int) -> torch.optim.lr_scheduler.LambdaLR:
-    """Linear warm-up from ~0 to the optimizer's lr over ``warmup_steps`` updates, then constant (as in ODT)."""
+def make_warmup_scheduler(optimizer: torch.optim.Optimizer, warmup_steps: int, decay_steps: int = 0,
+                          min_fraction: float = 1.0) -> torch.optim.lr_scheduler.LambdaLR:
+    """Linear warm-up from ~0 to the optimizer's lr over ``warmup_steps`` updates, then constant (as
+    in ODT); with ``decay_steps > warmup_steps``, a cosine decay from the lr to ``min_fraction`` of it
+    at update ``decay_steps``, constant afterwards."""
     warmup = max(1, int(warmup_steps))
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: min(1.0, (step + 1) / warmup))
+    decay = int(decay_steps)
+    if not 0.0 < min_fraction <= 1.0:
+        raise ValueError(f"min_fraction must be in (0, 1], got {min_fraction}")
+
+    def factor(step: int) -> float:
+        if step + 1 < warmup:
+            return (step + 1) / warmup
+        if decay <= warmup or min_fraction == 1.0:
+            return 1.0
+        progress = min(1.0, (step + 1 - warmup) / (decay - warmup))
+        return min_fraction + (1.0 - min_fraction) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def make_constant_scheduler(optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:
+    """The optimizer's lr, unchanged (e.g. the online phase after a decayed offline phase)."""
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0)
