@@ -64,7 +64,7 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
     if path.exists():
         raise FileExistsError(f"{path} exists but holds no dataset (no meta.json); remove it or pass another path")
     verb = "resuming the collection of" if partial_path(path).exists() else "collecting"
-    log(f"{verb} {cfg.episodes} expert episodes of {task} into {path} (action noise {cfg.expert_noise:g}, "
+    log(f"{verb} {cfg.episodes} expert episodes of {task} into {path} (movement noise {cfg.expert_noise:g}, "
         f"{'with' if pixels else 'without'} pixels)")
     collect_expert_dataset(path, task=task, num_episodes=cfg.episodes, num_workers=cfg.num_envs,
                            image_size=image_size, from_pixels=pixels, noise=cfg.expert_noise, seed=seed,
