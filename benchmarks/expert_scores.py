@@ -17,14 +17,14 @@ import numpy as np
 
 
 def run_episode(env, task, seed, expert_action, noise=0.0, rng=None):
+    from trakdis.envs import add_movement_noise  # trakdis is imported in main(), after the GL setup
+
     obs, info = env.reset(seed=seed)
     frames = [obs.get("pixels")]
     for t in range(env.horizon):
         action = expert_action(task, obs["state"], t)
         if noise > 0:  # as ExpertPolicy: noise on the picker movements, the grasp command stays +-1
-            moves = action.reshape(-1, 4)[:, :3]
-            moves += noise * rng.standard_normal(moves.shape)
-            np.clip(moves, -1, 1, out=moves)
+            add_movement_noise(action, noise, rng)
         obs, reward, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             break

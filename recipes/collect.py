@@ -15,21 +15,20 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Optional
 
 import torch
 
+from trakdis.envs.specs import TaskName
 from trakdis.utils.config import parse_config
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
-
-Task = Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
 
 
 @dataclass
 class CollectConfig:
     """Collect scripted-expert episodes into a dataset directory."""
 
-    task: Task = "ClothFold"
+    task: TaskName = "ClothFold"
     """cloth task"""
     horizon: int = 100
     """episode length"""

@@ -39,11 +39,11 @@ from trakdis.utils.policies import (PolicyHandle, ProprioceptionOverride, StateN
                                    load_policy, save_policy)
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
-from trakdis.utils.training import Updater, episode_to_trajectory, mean_metrics
+from trakdis.utils.training import OptimConfig, episode_to_trajectory, mean_metrics
 
 
 @dataclass
-class DistillConfig(RunConfig):
+class DistillConfig(OptimConfig, RunConfig):
     """Distil the privileged teacher into an image-based student."""
 
     teacher: str = "latest"
@@ -69,16 +69,10 @@ class DistillConfig(RunConfig):
     """updates per round"""
     batch_size: int = 64
     """windows per update"""
-    optimizer: Literal["adamw", "adam", "lamb"] = "adamw"
-    """optimiser (the paper: lamb)"""
     lr: float = 1e-4
     """learning rate"""
-    weight_decay: float = 1e-4
-    """weight decay"""
     warmup_steps: int = 20
-    """learning-rate warm-up (updates)"""
-    grad_clip: float = 0.25
-    """gradient-norm clip (0: off)"""
+    """linear learning-rate warm-up (updates)"""
     kl_coef: float = 0.0
     """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
     buffer_capacity: int = 200
@@ -142,8 +136,7 @@ def main(argv=None) -> dict:
     else:
         loss = DTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
         obs_keys = ("state_estimate",)
-    updater = Updater(loss, optimizer=cfg.optimizer, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                      warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None)
+    updater = cfg.make_updater(loss)
     # Teacher and student read states standardised with the teacher's statistics (the student's
     # weights start as the teacher's, and the encoder's estimates live in state units).
     normalizer = None

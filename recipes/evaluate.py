@@ -17,12 +17,11 @@ from typing import Literal, Optional
 
 import pandas as pd
 
+from trakdis.envs.specs import TaskName
 from trakdis.utils.evaluation import episode_frames, run_episodes, summarize, write_summary_table
 from trakdis.utils.policies import close_env, load_policy
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.video import write_video
-
-Task = Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
 
 
 @dataclass
@@ -31,7 +30,7 @@ class EvaluateConfig(RunConfig):
 
     policy: str = "expert"
     """'expert' (scripted expert) or a policy file / run directory holding policy.pt"""
-    task: Optional[Task] = None
+    task: Optional[TaskName] = None
     """task (required for the expert; a policy file knows its own)"""
     trials: int = 100
     """episodes per state-noise level"""

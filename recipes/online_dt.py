@@ -20,30 +20,28 @@ Writes ``runs/online_dt/<name>/``: ``config.json``, ``log.csv``, ``curves.png``,
 """
 from __future__ import annotations
 
-import time
-
 import sys
+import time
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
 import torch
 
+from trakdis.envs.specs import TaskName
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.checkpoint import rng_state, set_rng_state
 from trakdis.utils.evaluation import run_episodes
 from trakdis.utils.policies import PolicyHandle, StateNormalizer, close_env, load_policy, save_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
-from trakdis.utils.training import ModelConfig, Updater, episode_to_trajectory, mean_metrics
-
-Task = Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
+from trakdis.utils.training import ModelConfig, OptimConfig, episode_to_trajectory, mean_metrics
 
 
 @dataclass
-class OnlineDTConfig(RunConfig):
+class OnlineDTConfig(OptimConfig, RunConfig):
     """Teacher: offline Decision Transformer pretraining on expert data, then online fine-tuning."""
 
-    task: Task = "ClothFold"
+    task: TaskName = "ClothFold"
     """cloth task"""
     horizon: int = 100
     """episode length"""
@@ -51,21 +49,11 @@ class OnlineDTConfig(RunConfig):
     """expert dataset"""
     model: ModelConfig = field(default_factory=ModelConfig)
     """Decision Transformer"""
-    optimizer: Literal["adamw", "adam", "lamb"] = "adamw"
-    """optimiser (the paper: lamb)"""
-    lr: float = 1e-3
-    """learning rate"""
     min_lr_fraction: float = 0.1
     """the learning rate decays (cosine) from --lr to this fraction of it by the end of offline
     pretraining (1: constant after the warm-up, as in ODT)"""
     online_lr: Optional[float] = None
     """constant learning rate of the online phase (default: the last offline one, --lr x --min-lr-fraction)"""
-    weight_decay: float = 1e-4
-    """weight decay"""
-    warmup_steps: int = 100
-    """linear learning-rate warm-up (updates)"""
-    grad_clip: float = 0.25
-    """gradient-norm clip (0: off)"""
     batch_size: int = 64
     """windows per update"""
     lambda_entropy: float = 0.1
@@ -154,9 +142,7 @@ def main(argv=None) -> dict:
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = DTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                   action_eps=dt_cfg.action_eps)
-    updater = Updater(loss, optimizer=cfg.optimizer, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                      warmup_steps=cfg.warmup_steps, grad_clip=cfg.grad_clip or None,
-                      decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
+    updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
     n_params = sum(p.numel() for p in actor.parameters())
     run.print(f"{cfg.task}: DT with {n_params / 1e6:.2f}M parameters ({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 import copy
 import sys
 from dataclasses import dataclass, field
-from typing import Literal
 
 import torch
 
+from trakdis.envs.specs import TaskName
 from trakdis.utils.checkpoint import rng_state, set_rng_state
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
 from trakdis.utils.optim import make_optimizer
@@ -28,14 +28,12 @@ from trakdis.utils.policies import NormalizedEncoder, save_encoder
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 
-Task = Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
-
 
 @dataclass
 class TrainEncoderConfig(RunConfig):
     """Train the CNN state encoder on the expert dataset's images and states."""
 
-    task: Task = "ClothFold"
+    task: TaskName = "ClothFold"
     """cloth task"""
     horizon: int = 100
     """episode length of the dataset"""

@@ -17,8 +17,8 @@ from trakdis.envs.cloth_env import (  # noqa: E402
     ClothFoldEnv,
     ENV_CLASSES,
 )
-from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, expert_action  # noqa: E402
-from trakdis.envs.specs import TASKS, ClothConfig, TaskSpec, cloth_config, task_spec  # noqa: E402
+from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_noise, expert_action  # noqa: E402
+from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
 from trakdis.envs.torchrl_env import make_env  # noqa: E402
 
 for _task, _cls in ENV_CLASSES.items():
@@ -28,7 +28,9 @@ for _task, _cls in ENV_CLASSES.items():
 
 __all__ = [
     "EXPERT_VERSION",
+    "add_movement_noise",
     "TASKS",
+    "TaskName",
     "TaskSpec",
     "ClothConfig",
     "task_spec",

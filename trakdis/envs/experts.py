@@ -164,6 +164,16 @@ def expert_action(
     return action.reshape(*batch, spec.action_dim).astype(np.float32)
 
 
+def add_movement_noise(action: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """Add Gaussian noise of std ``noise`` to the picker movements ``[dx, dy, dz]`` of ``action``
+    ``[..., num_pickers * 4]`` in place (then clip them to [-1, 1]) and return it; the grasp
+    commands stay as they are."""
+    moves = action.reshape(*action.shape[:-1], -1, 4)[..., :3]  # a view into ``action``
+    moves += noise * rng.standard_normal(moves.shape)
+    np.clip(moves, -1.0, 1.0, out=moves)
+    return action
+
+
 class ExpertPolicy(TensorDictModuleBase):
     """Scripted expert as a TensorDict module: reads ``"state"``, ``"step_count"``; writes ``"action"``.
 
@@ -192,8 +202,6 @@ class ExpertPolicy(TensorDictModuleBase):
         step_np = 0 if step is None else step.detach().cpu().numpy()
         action = expert_action(self.task, state.detach().cpu().numpy(), step_np, **self.expert_kwargs)
         if self.noise > 0:
-            moves = action.reshape(*action.shape[:-1], -1, 4)[..., :3]  # a view into ``action``
-            moves += self.noise * self._rng.standard_normal(moves.shape)
-            np.clip(moves, -1.0, 1.0, out=moves)
+            add_movement_noise(action, self.noise, self._rng)
         tensordict.set("action", torch.as_tensor(action, dtype=torch.float32, device=state.device))
         return tensordict

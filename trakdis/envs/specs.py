@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 
 import numpy as np
 
-TASKS = ("ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned")
+TaskName = typing.Literal["ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned"]
+"""The task names as a type (the recipes' ``--task`` choices)."""
+TASKS = typing.get_args(TaskName)
 SPLITS = ("train", "eval")
 
 # Number of distinct domain-randomization configurations per split. The train and eval pools are

@@ -8,13 +8,12 @@ trust ratio ``||w|| / ||update||`` clamped to ``[0, max_trust]``).
 """
 from __future__ import annotations
 
-from typing import Iterable
-
 import math
+from typing import Iterable
 
 import torch
 
-__all__ = ["Lamb", "make_optimizer", "make_warmup_scheduler"]
+__all__ = ["Lamb", "make_constant_scheduler", "make_optimizer", "make_warmup_scheduler"]
 
 
 class Lamb(torch.optim.Optimizer):

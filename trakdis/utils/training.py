@@ -10,14 +10,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Literal, Mapping, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 
 from .optim import make_constant_scheduler, make_optimizer, make_warmup_scheduler
 
-__all__ = ["ModelConfig", "Updater", "episode_to_trajectory", "mean_metrics"]
+__all__ = ["ModelConfig", "OptimConfig", "Updater", "episode_to_trajectory", "mean_metrics"]
 
 
 @dataclass
@@ -114,6 +114,29 @@ class Updater:
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.updates = int(state["updates"])
+
+
+@dataclass
+class OptimConfig:
+    """Optimiser options of a recipe that trains with an :class:`Updater` (a base of its config
+    dataclass, so the flags stay ``--lr``, ``--warmup-steps``, ...; a recipe redeclares a field to
+    change its default)."""
+
+    optimizer: Literal["adamw", "adam", "lamb"] = "adamw"
+    """optimiser (the paper: lamb)"""
+    lr: float = 1e-3
+    """learning rate"""
+    weight_decay: float = 1e-4
+    """weight decay"""
+    warmup_steps: int = 100
+    """linear learning-rate warm-up (updates)"""
+    grad_clip: float = 0.25
+    """gradient-norm clip (0: off)"""
+
+    def make_updater(self, loss_module: torch.nn.Module, **kwargs: Any) -> "Updater":
+        """An :class:`Updater` of ``loss_module`` with these options (``kwargs``: the other arguments)."""
+        return Updater(loss_module, optimizer=self.optimizer, lr=self.lr, weight_decay=self.weight_decay,
+                       warmup_steps=self.warmup_steps, grad_clip=self.grad_clip or None, **kwargs)
 
 
 def mean_metrics(history: Sequence[Mapping[str, float]], prefix: str = "train/") -> dict[str, float]:
