@@ -62,8 +62,13 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """learn the entropy temperature toward a target entropy of -action_dim (Online DT)"""
     rtg_scale: float = 1.0
     """return-to-go scale (rewards and targets are multiplied by it)"""
-    buffer_capacity: int = 1000
-    """trajectories in the replay buffer (Online DT: 1000)"""
+    buffer_capacity: Optional[int] = None
+    """trajectories in the replay buffer (default: as many as the offline dataset has, so every
+    rollout competes with a demonstration; Online DT: 1000)"""
+    buffer_replacement: Literal["oldest", "lowest_return"] = "lowest_return"
+    """which trajectory a rollout replaces once the buffer is full: the lowest-return one, and only
+    if the rollout's return is higher (rollouts worse than every stored trajectory are dropped), or
+    the oldest (Online DT: the lowest-return offline ones go first, then first-in first-out)"""
     early_windows: bool = True
     """also sample windows that begin before an episode's first step, so its first K-1 steps are
     trained as often as the others (the DT/ODT reference: --no-early-windows)"""
@@ -71,7 +76,7 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """offline pretraining updates"""
     online_rounds: int = 8
     """online rounds (roll out, add to the buffer, update)"""
-    episodes_per_round: int = 4
+    episodes_per_round: int = 8
     """episodes rolled out per online round (sampled actions, train split)"""
     updates_per_round: int = 150
     """updates after each online rollout"""
@@ -108,7 +113,8 @@ PRESETS = {
         "model": {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30, "dropout": 0.1},
         "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000, "batch_size": 256,
         "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
-        "updates_per_round": 300, "min_lr_fraction": 1.0, "eval_rtg": -1.0, "eval_episodes": 100, "eval_every": 50,
+        "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
+        "eval_rtg": -1.0, "eval_episodes": 100, "eval_every": 50,
     },
 }
 
@@ -147,7 +153,7 @@ def main(argv=None) -> dict:
     run.print(f"{cfg.task}: DT with {n_params / 1e6:.2f}M parameters ({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
 
     counters = {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
-                "normalizer": None}
+                "normalizer": None, "buffer_capacity": cfg.buffer_capacity}
     state = run.resume_state()
     if state is not None:
         counters.update(state["counters"])
@@ -164,10 +170,13 @@ def main(argv=None) -> dict:
         run.print(f"offline data: {trajectories.shape[0]} episodes from {dataset}; return {rets.mean():.3f} "
                   f"(best {rets.max():.3f}); final normalized performance {final.mean():.3f}")
         counters["best_return"] = float(rets.max())
+        if counters["buffer_capacity"] is None:
+            counters["buffer_capacity"] = int(trajectories.shape[0])
     # The DT reads standardised states (buffer windows and acting); data and envs stay raw.
     normalizer = StateNormalizer.from_state_dict(counters["normalizer"])
-    buffer = make_buffer(cfg.buffer_capacity, cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
-                         seed=cfg.seed, transform=normalizer, early_windows=cfg.early_windows)
+    buffer = make_buffer(counters["buffer_capacity"], cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
+                         seed=cfg.seed, transform=normalizer, early_windows=cfg.early_windows,
+                         replacement=cfg.buffer_replacement)
     if state is not None:
         updater.load_state_dict(state["updater"])
         buffer.load_state_dict(state["buffer"])
@@ -236,8 +245,8 @@ def main(argv=None) -> dict:
                                        keep_episodes=True, desc="rollout",
                                        seed=cfg.seed + 1000 * (counters["rounds"] + 1))
                     actor.train()
-                    for ep in res.episodes if not cfg.offline_control else ():
-                        buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action")))
+                    kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
+                               for ep in (res.episodes if not cfg.offline_control else ()))
                     counters["rounds"] += 1
                     history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
                                progress(range(cfg.updates_per_round), desc=f"round {counters['rounds']}")]
@@ -245,9 +254,11 @@ def main(argv=None) -> dict:
                     run.log(counters["updates"], {**mean_metrics(history), "phase": 1,
                                                   "online/normalized_performance": float(res.final_performance.mean()),
                                                   "online/return": float(res.returns.mean()),
-                                                  "online/round": counters["rounds"]})
+                                                  "online/round": counters["rounds"], "online/kept": kept,
+                                                  "online/buffer_online_fraction": buffer.online_fraction})
                     run.print(f"round {counters['rounds']}/{cfg.online_rounds}: rollout normalized performance "
-                              f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f}, "
+                              f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f} "
+                              f"({kept} kept; buffer {buffer.online_fraction:.0%} online), "
                               f"loss_nll {run.logger.last('train/loss_nll'):.3f}")
                     if counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.online_rounds:
                         evaluate(run, handle, eval_env, cfg, counters["updates"], f"after round {counters['rounds']}")

@@ -185,3 +185,36 @@ def test_state_dict_round_trip(tmp_path):
     assert rb.add_trajectory(td[1]) == rb2.add_trajectory(td[1])
     with pytest.raises(ValueError, match="capacity"):
         TrajectoryReplayBuffer(capacity=4, context_len=4, max_len=8).load_state_dict(rb.state_dict())
+
+
+def test_lowest_return_replacement_keeps_the_best(tmp_path):
+    rb = TrajectoryReplayBuffer(capacity=3, context_len=2, max_len=4, replacement="lowest_return", seed=0)
+    offline, _ = _trajs([-3.0, -1.0, -5.0, -2.0])  # ids 0..3; id 2 (-5) is dropped
+    rb.load_offline(offline)
+    assert set(_stored_ids(rb)) == {0, 1, 3}
+    online, _ = _trajs([-10.0, -1.5, -0.5, -2.5])
+    online["state"][..., 0] += 100
+    # -10 is worse than every stored one: dropped; -1.5 replaces id 0 (-3); -0.5 replaces id 3 (-2)
+    assert rb.add_trajectory(online[0]) == -1
+    assert set(_stored_ids(rb)) == {0, 1, 3} and rb.num_online_added == 1
+    assert rb.add_trajectory(online[1]) >= 0 and rb.add_trajectory(online[2]) >= 0
+    assert _stored_ids(rb) == {1: False, 101: True, 102: True}
+    assert sorted(rb.returns.tolist()) == pytest.approx([-1.5, -1.0, -0.5])
+    # every sampled window comes from a kept trajectory
+    assert set(rb.sample(256)["state"][..., 0].unique().long().tolist()) <= {0, 1, 101, 102}
+    # the ranking survives a checkpoint: -2.5 is dropped in both, -0.7 and -0.6 replace -1.5 and -1.0
+    rb2 = TrajectoryReplayBuffer(capacity=3, context_len=2, max_len=4, replacement="lowest_return", seed=0)
+    torch.save(rb.state_dict(), tmp_path / "rb.pt")
+    rb2.load_state_dict(torch.load(tmp_path / "rb.pt", weights_only=False))
+    assert rb.add_trajectory(online[3]) == rb2.add_trajectory(online[3]) == -1
+    better, _ = _trajs([-0.7, -0.6])
+    assert (rb.extend(better) == rb2.extend(better)).all()
+    assert sorted(rb2.returns.tolist()) == pytest.approx([-0.7, -0.6, -0.5]) == sorted(rb.returns.tolist())
+    # within one batch, an item evicted by a later one of the same batch is reported as not kept
+    rb3 = TrajectoryReplayBuffer(capacity=1, context_len=2, max_len=4, replacement="lowest_return")
+    rb3.load_offline(_trajs([-5.0])[0])
+    assert rb3.extend(_trajs([-2.0, -1.0])[0]).tolist() == [-1, 0]
+    with pytest.raises(ValueError, match="replacement"):
+        TrajectoryReplayBuffer(capacity=3, context_len=2, max_len=4, replacement="fifo")
+    with pytest.raises(ValueError, match="replacement"):
+        TrajectoryReplayBuffer(capacity=3, context_len=2, max_len=4).load_state_dict(rb.state_dict())

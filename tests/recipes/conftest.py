@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from trakdis.utils.datasets import DataConfig
+
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 HORIZON = 6
 DATA = ["--data.root", "datasets", "--data.episodes", "4", "--data.num-envs", "1"]
@@ -71,7 +73,7 @@ def workdir(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def dataset(workdir) -> Path:
     run_recipe(workdir, "collect", "--horizon", HORIZON, "--episodes", 4, "--root", "datasets", "--num-envs", 1)
-    path = workdir / "datasets" / f"ClothFold_4ep_h{HORIZON}_noise0.1_px32"
+    path = workdir / "datasets" / f"ClothFold_4ep_h{HORIZON}_noise{DataConfig.expert_noise:g}_px32"
     assert json.loads((path / "meta.json").read_text())["format"] == "trakdis-dataset"
     return path
 

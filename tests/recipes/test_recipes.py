@@ -42,6 +42,10 @@ def test_online_dt_files_and_scores(teacher):
     assert frame["online/normalized_performance"].notna().sum() == 2
     ck = load_checkpoint(teacher / "checkpoint.pt")
     assert ck["step"] == 12 and ck["counters"]["rounds"] == 2 and ck["buffer"]["num_online_added"] == 4
+    # default buffer: as many slots as demonstrations; rollouts enter only by beating the worst one
+    assert ck["buffer"]["config"]["capacity"] == 4 and ck["buffer"]["config"]["replacement"] == "lowest_return"
+    kept = frame["online/kept"].dropna()
+    assert len(kept) == 2 and kept.between(0, 2).all() and ck["buffer"]["online"].sum() <= kept.sum()
     handle = load_policy(teacher)
     assert handle.kind == "teacher" and handle.horizon == HORIZON and handle.observation_key == "state"
     assert cv2.imread(str(teacher / "curves.png")) is not None

@@ -7,6 +7,9 @@ Semantics (ODT, Zheng et al. 2022, and its reference code):
 * Each online trajectory replaces the *oldest* stored one; offline trajectories count as older than
   any online one and, among themselves, lower return = older. So the lowest-return offline data
   goes first and the buffer turns from offline to online (``online_fraction``).
+  With ``replacement="lowest_return"`` a full buffer instead keeps the ``capacity`` highest-return
+  trajectories seen so far: a new one replaces the lowest-return stored one, offline or online, and
+  is dropped if it is not better (return-filtered, like self-imitation learning; not ODT).
 * ``sample(B)`` returns windows ``[B, K]``: a start step is drawn uniformly among all stored steps
   (i.e. a trajectory with probability proportional to its length, then a uniform start in it), the
   window covers up to ``K`` steps from there and is left-padded to ``K`` with ``mask`` False and
@@ -24,6 +27,8 @@ TorchRL parts and why:
   offline trajectories are written in ascending order of return (done in :meth:`load_offline`):
   the ring cursor then points at the lowest-return offline trajectory first, then the next, and
   after one full turn at the oldest online trajectory. No custom writer is needed.
+  ``replacement="lowest_return"``: TorchRL ``TensorDictMaxValueWriter`` ranking trajectories by their
+  summed reward (padding is zero), subclassed only to add the ``state_dict`` it lacks (checkpoints).
 * Sampler: :class:`WindowSampler` (ours). TorchRL's ``SliceSampler`` samples trajectory slices of
   *fixed* length that must fit inside a trajectory (or are truncated at the end, not left-padded),
   picks trajectories uniformly rather than by length unless weighted by hand, and finds trajectory
@@ -43,12 +48,12 @@ from typing import Any, Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.data import LazyTensorStorage, ReplayBuffer, RoundRobinWriter
+from torchrl.data import LazyTensorStorage, ReplayBuffer, RoundRobinWriter, TensorDictMaxValueWriter
 from torchrl.data.replay_buffers.samplers import Sampler
 
 from trakdis.transforms.return_to_go import hindsight_return_to_go
 
-__all__ = ["TrajectoryReplayBuffer", "WindowSampler"]
+__all__ = ["TopReturnWriter", "TrajectoryReplayBuffer", "WindowSampler"]
 
 
 class WindowSampler(Sampler):
@@ -162,6 +167,49 @@ class WindowSampler(Sampler):
         return f"{type(self).__name__}(capacity={self.capacity}, context_len={self.context_len})"
 
 
+class TopReturnWriter(TensorDictMaxValueWriter):
+    """TorchRL's ``TensorDictMaxValueWriter`` ranking stored trajectories by return, with a state dict.
+
+    Two departures from TorchRL 0.14's writer, each a gap for trajectory items:
+
+    * ``state_dict`` raises ``NotImplementedError`` there (it only has ``dumps``/``loads`` to a
+      directory), and the replay buffer's ``state_dict`` calls it; checkpoints need the heap of
+      (return, slot) pairs and the cursor, which is all its state.
+    * ``extend`` there builds its output index with ``data.shape``, which fails for items that are
+      trajectories (``[N, max_len]`` written into a storage of ``N`` slots, the use its docstring
+      allows); here the index has one entry per trajectory.
+    """
+
+    def __init__(self, rank_key: NestedKey = "reward"):
+        super().__init__(rank_key=rank_key, reduction="sum")
+
+    def extend(self, data: TensorDictBase) -> torch.Tensor:
+        """Writes the items of ``data`` (along its first dim) that rank among the top; returns their
+        slots, -1 for items not kept."""
+        slot_of_item = {}
+        for i in range(data.shape[0]):
+            slot = self.get_insert_index(data[i])
+            if slot is not None:
+                self._write_count += 1
+                slot_of_item = {s: j for s, j in slot_of_item.items() if s != slot}  # a later item evicted it
+                slot_of_item[slot] = i
+        out = torch.full((data.shape[0],), -1, dtype=torch.long)
+        if slot_of_item:
+            slots = torch.tensor(list(slot_of_item.keys()), dtype=torch.long)
+            items = torch.tensor(list(slot_of_item.values()), dtype=torch.long)
+            out[items] = slots
+            self._storage.set(slots, data[items])
+            self._mark_update_entities(slots)
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"cursor": int(self._cursor), "top_values": [(float(r), int(i)) for r, i in self._current_top_values]}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self._cursor = int(state_dict["cursor"])
+        self._current_top_values = [(float(r), int(i)) for r, i in state_dict["top_values"]]
+
+
 def _get(td: TensorDictBase, key: NestedKey) -> torch.Tensor | TensorDictBase | None:
     """``td[key]``, else ``td["next", key]`` (collector layout: rewards live under ``"next"``)."""
     val = td.get(key, None)
@@ -191,6 +239,10 @@ class TrajectoryReplayBuffer:
         early_windows: also sample windows that begin before a trajectory's first step, so the
             first ``K - 1`` steps are trained as often as the others (see :class:`WindowSampler`;
             ``False`` is the DT/ODT reference sampling).
+        replacement: which stored trajectory a new one replaces once the buffer is full:
+            ``"oldest"`` (Online DT: the lowest-return offline ones first, then first-in first-out)
+            or ``"lowest_return"`` (the lowest-return one, offline or online, and only if the new
+            one has a higher return; otherwise the new one is dropped).
 
     Example:
         >>> rb = TrajectoryReplayBuffer(capacity=1000, context_len=20, max_len=100, keys=("state", "action"))
@@ -211,6 +263,7 @@ class TrajectoryReplayBuffer:
         device: torch.device | str | None = None,
         transform=None,
         early_windows: bool = False,
+        replacement: str = "oldest",
     ):
         if capacity < 1 or max_len < 1:
             raise ValueError(f"TrajectoryReplayBuffer: capacity ({capacity}) and max_len ({max_len}) must be >= 1")
@@ -225,7 +278,10 @@ class TrajectoryReplayBuffer:
         self.device = None if device is None else torch.device(device)
         self.transform = transform
         self.sampler = WindowSampler(self.capacity, self.context_len, seed=seed, early_windows=early_windows)
-        self.writer = RoundRobinWriter()
+        if replacement not in ("oldest", "lowest_return"):
+            raise ValueError(f"TrajectoryReplayBuffer: replacement must be 'oldest' or 'lowest_return', got {replacement!r}")
+        self.replacement = replacement
+        self.writer = RoundRobinWriter() if replacement == "oldest" else TopReturnWriter("reward")
         self.storage = LazyTensorStorage(self.capacity)
         self._rb = ReplayBuffer(storage=self.storage, sampler=self.sampler, writer=self.writer)
         self.returns = torch.zeros(self.capacity)
@@ -269,12 +325,16 @@ class TrajectoryReplayBuffer:
         return packed, lengths
 
     def _write(self, packed: TensorDict, lengths: torch.Tensor, online: bool) -> torch.Tensor:
+        """Writes ``packed`` ``[N, max_len]``; returns the slot of each (-1: not kept, ``"lowest_return"``)."""
         index = self._rb.extend(packed)
         index = torch.as_tensor(index).reshape(-1)
-        self.sampler.set_lengths(index, lengths)
+        kept = index >= 0
+        slots = index[kept]
+        self.sampler.set_lengths(slots, lengths[kept])
         valid = torch.arange(self.max_len).unsqueeze(0) < lengths.unsqueeze(1)
-        self.returns[index] = (packed["reward"].squeeze(-1).double() * valid).sum(-1).float()
-        self.online[index] = online
+        returns = (packed["reward"].squeeze(-1).double() * valid).sum(-1).float()
+        self.returns[slots] = returns[kept]
+        self.online[slots] = online
         return index
 
     def load_offline(self, data: TensorDictBase, lengths: torch.Tensor | None = None) -> torch.Tensor:
@@ -307,7 +367,8 @@ class TrajectoryReplayBuffer:
         return self._write(packed, lengths, online=False)
 
     def add_trajectory(self, trajectory: TensorDictBase, length: int | None = None) -> int:
-        """Adds one online trajectory ``[T]`` (e.g. a rollout/collector batch of one episode)."""
+        """Adds one online trajectory ``[T]`` (e.g. a rollout/collector batch of one episode); returns
+        its slot, or -1 if a ``"lowest_return"`` buffer did not keep it."""
         if trajectory.batch_dims != 1:
             raise ValueError(
                 f"TrajectoryReplayBuffer.add_trajectory: expected one trajectory [T], got batch size "
@@ -317,7 +378,8 @@ class TrajectoryReplayBuffer:
         return int(self.extend(trajectory.unsqueeze(0), lengths)[0])
 
     def extend(self, trajectories: TensorDictBase, lengths: torch.Tensor | None = None) -> torch.Tensor:
-        """Adds online trajectories ``[N, T]`` in order; each replaces the oldest stored one."""
+        """Adds online trajectories ``[N, T]`` in order; each replaces the oldest stored one (or the
+        lowest-return one, see ``replacement``). Returns their slots (-1: not kept)."""
         packed, lengths = self._pack(trajectories, lengths)
         self.num_online_added += packed.shape[0]
         return self._write(packed, lengths, online=True)
@@ -378,6 +440,7 @@ class TrajectoryReplayBuffer:
                 "max_len": self.max_len,
                 "keys": list(self.keys),
                 "rtg_scale": self.rtg_scale,
+                "replacement": self.replacement,
             },
             "replay_buffer": self._rb.state_dict(),
             "returns": self.returns.clone(),
@@ -387,8 +450,9 @@ class TrajectoryReplayBuffer:
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         cfg = state_dict["config"]
-        mine = {"capacity": self.capacity, "max_len": self.max_len, "keys": list(self.keys)}
-        bad = {k: (cfg[k], v) for k, v in mine.items() if cfg[k] != v}
+        mine = {"capacity": self.capacity, "max_len": self.max_len, "keys": list(self.keys),
+                "replacement": self.replacement}
+        bad = {k: (cfg.get(k, "oldest"), v) for k, v in mine.items() if cfg.get(k, "oldest") != v}
         if bad:
             raise ValueError(f"TrajectoryReplayBuffer.load_state_dict: config mismatch (saved, current): {bad}")
         self._rb.load_state_dict(state_dict["replay_buffer"])
@@ -399,5 +463,5 @@ class TrajectoryReplayBuffer:
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(capacity={self.capacity}, len={len(self)}, context_len={self.context_len}, "
-            f"max_len={self.max_len}, keys={self.keys}, online_fraction={self.online_fraction:.3f})"
+            f"max_len={self.max_len}, keys={self.keys}, replacement={self.replacement!r}, online_fraction={self.online_fraction:.3f})"
         )
