@@ -10,8 +10,8 @@ expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in Tra
 2. Offline pretraining: ``--offline-updates`` updates on windows of the trajectory buffer.
 3. Online fine-tuning: ``--online-rounds`` rounds of [roll out ``--episodes-per-round`` episodes
    (``--exploration mean|sample``) with the return-to-go ``--exploration-rtg``, add them to the
-   buffer (which drops the oldest / lowest-return trajectories first), ``--updates-per-round``
-   updates].
+   buffer (``--buffer-replacement``: a rollout replaces the lowest-return trajectory if it beats
+   it, or the oldest one as in Online DT), ``--updates-per-round`` updates].
 4. Evaluation (mean action, eval split, return-to-go ``--eval-rtg``) after offline pretraining,
    every ``--eval-every`` rounds and at the end; the expert is evaluated on the same episodes.
 
