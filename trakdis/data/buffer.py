@@ -28,7 +28,8 @@ TorchRL parts and why:
   the ring cursor then points at the lowest-return offline trajectory first, then the next, and
   after one full turn at the oldest online trajectory. No custom writer is needed.
   ``replacement="lowest_return"``: TorchRL ``TensorDictMaxValueWriter`` ranking trajectories by their
-  summed reward (padding is zero), subclassed only to add the ``state_dict`` it lacks (checkpoints).
+  summed reward (padding is zero), subclassed for the two gaps it has with trajectory items
+  (:class:`TopReturnWriter`).
 * Sampler: :class:`WindowSampler` (ours). TorchRL's ``SliceSampler`` samples trajectory slices of
   *fixed* length that must fit inside a trajectory (or are truncated at the end, not left-padded),
   picks trajectories uniformly rather than by length unless weighted by hand, and finds trajectory
@@ -191,8 +192,7 @@ class TopReturnWriter(TensorDictMaxValueWriter):
             slot = self.get_insert_index(data[i])
             if slot is not None:
                 self._write_count += 1
-                slot_of_item = {s: j for s, j in slot_of_item.items() if s != slot}  # a later item evicted it
-                slot_of_item[slot] = i
+                slot_of_item[slot] = i  # a later item of the batch may evict an earlier one: last wins
         out = torch.full((data.shape[0],), -1, dtype=torch.long)
         if slot_of_item:
             slots = torch.tensor(list(slot_of_item.keys()), dtype=torch.long)
@@ -450,9 +450,10 @@ class TrajectoryReplayBuffer:
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         cfg = state_dict["config"]
+        cfg = {"replacement": "oldest", **cfg}  # checkpoints from before the option was added
         mine = {"capacity": self.capacity, "max_len": self.max_len, "keys": list(self.keys),
                 "replacement": self.replacement}
-        bad = {k: (cfg.get(k, "oldest"), v) for k, v in mine.items() if cfg.get(k, "oldest") != v}
+        bad = {k: (cfg[k], v) for k, v in mine.items() if cfg[k] != v}
         if bad:
             raise ValueError(f"TrajectoryReplayBuffer.load_state_dict: config mismatch (saved, current): {bad}")
         self._rb.load_state_dict(state_dict["replay_buffer"])
