@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import torch
 import pytest
 
 from trakdis.envs import ClothEnv
@@ -73,3 +74,31 @@ def test_explicit_backend_chosen_before_mujoco_is_kept():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "glfw", out.stdout
+
+
+@pytest.mark.parametrize("task", ["ClothFold", "ClothFoldDiagonalUnpinned"])
+def test_picker_markers_are_visible_at_32px_and_change_no_physics(task, monkeypatch):
+    """Each picker is drawn as a marker several pixels wide where the camera sees it, in the marker's
+    colour; the marker is rendering only: the same episode has the same states with a 12 mm marker."""
+    from trakdis.envs import ExpertPolicy, PICKER_MARKER_RADIUS, make_env
+    from trakdis.envs import model
+
+    assert PICKER_MARKER_RADIUS >= 0.03
+    env = ClothEnv(task=task, from_pixels=True, image_size=32, horizon=5)
+    obs, _ = env.reset(seed=2)
+    P = env.camera_matrix()
+    img = obs["pixels"].astype(int)
+    white = (img.min(-1) > 200)  # the marker's colour; cloth is blue, the table brown
+    for p in obs["state"][12:].reshape(-1, 3):
+        u, v, w = P @ np.append(p, 1.0)
+        col, row = int(u / w), int(v / w)
+        assert white[max(row - 1, 0): row + 2, max(col - 1, 0): col + 2].any(), f"no marker at ({col}, {row})"
+    assert white.sum() >= 6 * env.num_pickers  # several pixels per picker, not one
+
+    def states(radius):
+        monkeypatch.setattr(model, "PICKER_MARKER_RADIUS", radius)
+        td = make_env(task, from_pixels=True, image_size=32, seed=0, horizon=12).rollout(12, ExpertPolicy(task))
+        return td["next", "state"], td["pixels"]
+
+    big, small = states(PICKER_MARKER_RADIUS), states(0.012)
+    assert torch.equal(big[0], small[0]) and not torch.equal(big[1], small[1])

@@ -195,7 +195,7 @@ def collect_expert_dataset(
         )
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
-    from trakdis.envs import EXPERT_VERSION
+    from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
 
     config = {
         "task": task,
@@ -210,6 +210,7 @@ def collect_expert_dataset(
         "custom_env": make_env_fn is not None,
         "custom_policy": make_policy_fn is not None,
         "expert_version": None if make_policy_fn is not None else EXPERT_VERSION,
+        "render_version": RENDER_VERSION if from_pixels and make_env_fn is None else None,
     }
     tmp = partial_path(path)
     progress_file = tmp / "progress.json"

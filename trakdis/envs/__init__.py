@@ -18,6 +18,7 @@ from trakdis.envs.cloth_env import (  # noqa: E402
     ENV_CLASSES,
 )
 from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_noise, expert_action  # noqa: E402
+from trakdis.envs.model import PICKER_MARKER_RADIUS, RENDER_VERSION  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
 from trakdis.envs.torchrl_env import make_env  # noqa: E402
 
@@ -28,6 +29,8 @@ for _task, _cls in ENV_CLASSES.items():
 
 __all__ = [
     "EXPERT_VERSION",
+    "RENDER_VERSION",
+    "PICKER_MARKER_RADIUS",
     "add_movement_noise",
     "TASKS",
     "TaskName",

@@ -15,6 +15,15 @@ CAMERA_FOVY = 45.0
 TABLE_RGBA = "0.55 0.47 0.38 1"
 CLOTH_RGBA = "0.25 0.45 0.85 1"
 PICKER_RGBA = "0.95 0.95 0.95 1"
+# Radius of the sphere that draws a picker (rendering only: the geom has no contacts and the picker
+# is a mocap body, so physics and state are unchanged). SoftGym draws its pickers at 0.05 m beside
+# a cloth of similar size; at 12 mm a picker covered about one pixel of a 32x32 frame and an
+# image-only encoder could not tell where it was (docs/recipes/distill.md). 35 mm is about
+# 4 pixels across at the cloth's distance.
+PICKER_MARKER_RADIUS = 0.035
+# Bumped whenever what the camera shows changes; datasets with pixels record it (images of an older
+# rendering do not match what a policy sees today).
+RENDER_VERSION = 2
 BLOCK_RGBA = "0.35 0.35 0.35 1"
 
 
@@ -105,7 +114,7 @@ def build_mjcf(
         )
     pickers = "\n".join(
         f'<body name="picker{i}" mocap="true" pos="{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}">'
-        f'<geom type="sphere" size="0.012" rgba="{PICKER_RGBA}" contype="0" conaffinity="0"/></body>'
+        f'<geom type="sphere" size="{PICKER_MARKER_RADIUS}" rgba="{PICKER_RGBA}" contype="0" conaffinity="0"/></body>'
         for i, p in enumerate(picker_pos)
     )
     grasps = "\n".join(

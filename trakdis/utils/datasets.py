@@ -49,7 +49,7 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
     """The dataset directory; collected first (resuming an interrupted collection) if missing."""
     from trakdis.data import collect_expert_dataset, partial_path
 
-    from trakdis.envs import EXPERT_VERSION
+    from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
 
     path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels, image_size=image_size)
     if (path / "meta.json").exists():
@@ -61,6 +61,13 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                     f"{path} was collected with version {found} of the scripted expert; this trakdis has "
                     f"version {EXPERT_VERSION} (docs/tasks.md). Delete the directory to collect it again, or "
                     f"pass --data.path {path} to use it anyway")
+            found = meta.get("config", {}).get("render_version", 1)
+            if pixels and found != RENDER_VERSION:
+                raise DatasetError(
+                    f"{path} holds images of rendering version {found}; this trakdis renders version "
+                    f"{RENDER_VERSION} (larger picker markers, docs/tasks.md), so a policy would see other "
+                    f"images than it was trained on. Delete the directory to collect it again, or pass "
+                    f"--data.path {path} to use it anyway")
         return path
     if path.exists():
         raise FileExistsError(f"{path} exists but holds no dataset (no meta.json); remove it or pass another path")
