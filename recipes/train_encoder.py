@@ -15,6 +15,7 @@ Writes ``runs/train_encoder/<name>/``: ``config.json``, ``log.csv``, ``curves.pn
 from __future__ import annotations
 
 import copy
+import dataclasses
 import sys
 from dataclasses import dataclass, field
 
@@ -59,6 +60,15 @@ class TrainEncoderConfig(RunConfig):
     """channels of the 4 conv layers"""
     hidden_dim: int = 256
     """width of the MLP head"""
+    head: str = "keypoints"
+    """encoder head: 'keypoints' (spatial soft-argmax) or 'flatten' (the earlier layout)"""
+    stem_stride: int = 1
+    """stride of the first conv layer (2: the earlier layout)"""
+    coord_channels: bool = True
+    """append pixel-coordinate channels to the image (CoordConv)"""
+    extra_noise: tuple[float, ...] = ()
+    """also train on datasets of the same size collected with these expert movement noises (states
+    the expert alone never visits; collected if missing)"""
     val_fraction: float = 0.1
     """fraction of the episodes held out for validation"""
 
@@ -75,6 +85,12 @@ def main(argv=None) -> dict:
                           image_size=cfg.image_size, log=run.print, progress=cfg.progress)
     data, lengths = load_trajectories(path, keys=("pixels", "state"))
     n_ep = data.shape[0]
+    extra = []
+    for noise in cfg.extra_noise:
+        extra_cfg = dataclasses.replace(cfg.data, path=None, expert_noise=float(noise))
+        extra_path = ensure_dataset(extra_cfg, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed + 1, pixels=True,
+                                    image_size=cfg.image_size, log=run.print, progress=cfg.progress)
+        extra.append(load_trajectories(extra_path, keys=("pixels", "state")))
     n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 else 0
     perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
     # Split by episode (images of one episode are strongly correlated).
@@ -86,13 +102,17 @@ def main(argv=None) -> dict:
 
     train = flat(perm[n_val:])
     val = flat(perm[:n_val]) if n_val else None
+    for extra_data, extra_lengths in extra:  # training only: validation stays on the main dataset
+        valid = torch.arange(extra_data.shape[1]).unsqueeze(0) < extra_lengths.unsqueeze(1)
+        train = torch.cat([train, extra_data.to_tensordict()[valid]])
     train_states = train["state"]
     mean, std = train_states.mean(0), train_states.std(0).clamp_min(1e-3)
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "
               f"({n_ep - n_val} / {n_val} episodes)")
 
     encoder = NormalizedEncoder(StateEncoder(spec.state_dim, image_size=cfg.image_size, channels=cfg.channels,
-                                             hidden_dim=cfg.hidden_dim), mean, std).to(cfg.device)
+                                             hidden_dim=cfg.hidden_dim, head=cfg.head, stem_stride=cfg.stem_stride,
+                                             coord_channels=cfg.coord_channels), mean, std).to(cfg.device)
     loss = EncoderLoss(encoder, state_mirror=spec.state_mirror, augment=cfg.aug, flip_prob=cfg.flip_prob, pad=cfg.pad)
     optim = make_optimizer("adamw", encoder.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     n_params = sum(p.numel() for p in encoder.parameters())
@@ -106,17 +126,17 @@ def main(argv=None) -> dict:
         epoch, best = state["epoch"], state["best"]
         set_rng_state(state["rng"])
 
-    def validate() -> float:
+    def validate() -> dict:
         if val is None:
-            return float("nan")
+            return {"mae": float("nan")}
         loss.eval()
         with torch.no_grad():
             errs = []
             for i in range(0, val.shape[0], 1024):
                 b = val[i : i + 1024].to(cfg.device)
-                errs.append((encoder(b["pixels"]) - b["state"]).abs().mean(-1))
+                errs.append((encoder(b["pixels"]) - b["state"]).abs())
         loss.train()
-        return float(torch.cat(errs).mean())
+        return spec.state_error_cm(torch.cat(errs))
 
     while epoch < cfg.epochs:
         order = torch.randperm(train.shape[0])
@@ -131,13 +151,16 @@ def main(argv=None) -> dict:
                 totals[k] += float(out[k].detach()) * batch.shape[0]
             n += batch.shape[0]
         epoch += 1
-        val_mae = validate()
+        val_err = validate()
+        val_mae = val_err["mae"]
         if val is None or val_mae < best["val_mae"]:
-            best = {"val_mae": val_mae, "state_dict": copy.deepcopy(encoder.state_dict()), "epoch": epoch}
+            best = {"val_mae": val_mae, "state_dict": copy.deepcopy(encoder.state_dict()), "epoch": epoch,
+                    "val_error_cm": {k: v for k, v in val_err.items() if k != "mae"}}
         run.log(epoch, {"train/loss_encoder": totals["loss_encoder"] / n, "train/mae": totals["mae"] / n,
-                        "val/mae": val_mae})
+                        **{f"val/{k}": v for k, v in val_err.items()}})
+        groups = ", ".join(f"{k.removesuffix('_cm')} {v:.2f} cm" for k, v in val_err.items() if k != "mae")
         run.print(f"epoch {epoch}/{cfg.epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
-                  f"train MAE {totals['mae'] / n:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f}")
+                  f"train MAE {totals['mae'] / n:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f} ({groups})")
         run.save_checkpoint({"encoder": encoder.state_dict(), "optim": optim.state_dict(), "epoch": epoch,
                              "best": best, "rng": rng_state()}, step=epoch)
         if run.should_stop(epoch) and epoch < cfg.epochs:
@@ -145,7 +168,8 @@ def main(argv=None) -> dict:
             return best
     encoder.load_state_dict(best["state_dict"])
     save_encoder(run.dir / "encoder.pt", encoder.cpu(), task=cfg.task,
-                 extra={"val_mae": best["val_mae"], "epoch": best["epoch"], "aug": cfg.aug, "dataset": str(path)})
+                 extra={"val_mae": best["val_mae"], "val_error_cm": best.get("val_error_cm"), "epoch": best["epoch"],
+                        "aug": cfg.aug, "dataset": str(path)})
     run.finish()
     run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
               f"(state units, mean over {spec.state_dim} dims)")

@@ -58,3 +58,18 @@ def test_config_errors():
         cloth_config("ClothFold", "test", 0)
     with pytest.raises(ValueError, match="config index"):
         cloth_config("ClothFold", "train", CONFIG_POOL_SIZE)
+
+
+def test_state_error_groups_in_centimetres():
+    import torch
+
+    spec = task_spec("ClothFold")
+    err = torch.zeros(5, spec.state_dim)
+    err[:, :12] = 0.01
+    err[:, 12:] = 0.03
+    out = spec.state_error_cm(err)
+    assert out["corners_cm"] == pytest.approx(1.0) and out["pickers_cm"] == pytest.approx(3.0)
+    assert out["mae"] == pytest.approx((12 * 0.01 + 6 * 0.03) / 18)
+    assert task_spec("ClothFoldDiagonalPinned").state_groups["pickers"] == slice(12, 15)
+    with pytest.raises(ValueError, match="18 dims"):
+        spec.state_error_cm(torch.zeros(3, 15))

@@ -66,6 +66,20 @@ class TaskSpec:
     state_mirror: tuple[tuple[int, ...], tuple[float, ...]]
     gym_id: str
 
+    @property
+    def state_groups(self) -> dict[str, slice]:
+        """The reduced state's parts: ``corners`` (dims 0-11) and ``pickers`` (the rest), xyz each."""
+        return {"corners": slice(0, 12), "pickers": slice(12, self.state_dim)}
+
+    def state_error_cm(self, abs_error) -> dict[str, float]:
+        """Mean absolute error ``[..., state_dim]`` (metres) per state group, in centimetres
+        (``corners_cm``, ``pickers_cm``), and over all dims in state units (``mae``)."""
+        if abs_error.shape[-1] != self.state_dim:
+            raise ValueError(f"state_error_cm: {self.name} states have {self.state_dim} dims, got shape {tuple(abs_error.shape)}")
+        out = {f"{name}_cm": 100.0 * float(abs_error[..., dims].mean()) for name, dims in self.state_groups.items()}
+        out["mae"] = float(abs_error.mean())
+        return out
+
 
 def _mirror(num_pickers: int) -> tuple[tuple[int, ...], tuple[float, ...]]:
     # blocks of 3 (xyz): corners c00, c0N, cN0, cNN, then pickers

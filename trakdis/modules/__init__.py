@@ -1,7 +1,7 @@
 """Models: causal transformer, Decision Transformer actor, acting wrapper, CNN state encoder."""
 from trakdis.modules.acting import DTActingPolicy
 from trakdis.modules.decision_transformer import DecisionTransformer, DTActor, DTConfig, find_dt_actor, make_dt_actor
-from trakdis.modules.encoder import StateEncoder, to_float_chw
+from trakdis.modules.encoder import SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 from trakdis.modules.weights import copy_teacher_weights
 
@@ -12,8 +12,10 @@ __all__ = [
     "DTConfig",
     "DecisionTransformer",
     "KVCache",
+    "SpatialSoftArgmax",
     "StateEncoder",
     "TransformerConfig",
+    "coordinate_channels",
     "copy_teacher_weights",
     "find_dt_actor",
     "make_dt_actor",

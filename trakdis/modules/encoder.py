@@ -6,7 +6,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-__all__ = ["StateEncoder", "to_float_chw"]
+__all__ = ["SpatialSoftArgmax", "StateEncoder", "coordinate_channels", "to_float_chw"]
 
 
 def to_float_chw(pixels: torch.Tensor, *, name: str = "pixels") -> torch.Tensor:
@@ -30,43 +30,113 @@ def to_float_chw(pixels: torch.Tensor, *, name: str = "pixels") -> torch.Tensor:
     raise ValueError(f"{name}: expected uint8 HWC or float CHW images, got dtype {pixels.dtype} shape {tuple(pixels.shape)}")
 
 
-class StateEncoder(nn.Module):
-    """4-layer CNN mapping an RGB image to the reduced state.
+class SpatialSoftArgmax(nn.Module):
+    """Expected image coordinates of each feature map (Levine et al. 2016, "deep spatial autoencoders").
 
-    Conv(3->c0, 3x3, stride 2) then three Conv(3x3, stride 1), ReLU after each (DrQ/SAC-AE style),
-    flatten, Linear -> LayerNorm -> ReLU -> Linear(state_dim).
+    ``[N, C, H, W] -> [N, 2 C]``: for each channel, a softmax over its ``H x W`` positions (with a
+    learned temperature) weights the pixel-centre coordinates in ``[-1, 1]``, giving ``(x, y)``. The
+    result is sub-pixel and moves with the thing the map responds to, which a flatten + linear head
+    on stride-2 features has to learn per position.
+    """
+
+    def __init__(self, height: int, width: int):
+        super().__init__()
+        ys = torch.linspace(-1.0, 1.0, height)
+        xs = torch.linspace(-1.0, 1.0, width)
+        grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
+        self.register_buffer("grid", torch.stack([grid_x.reshape(-1), grid_y.reshape(-1)], dim=-1), persistent=False)
+        self.log_temperature = nn.Parameter(torch.zeros(()))
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        n, c = features.shape[:2]
+        weights = torch.softmax(features.reshape(n, c, -1) / self.log_temperature.exp(), dim=-1)
+        return (weights @ self.grid).reshape(n, 2 * c)
+
+
+def coordinate_channels(x: torch.Tensor) -> torch.Tensor:
+    """``[N, C, H, W] -> [N, C + 2, H, W]`` with the pixel's x and y in ``[-1, 1]`` (CoordConv, Liu et al. 2018)."""
+    n, _, h, w = x.shape
+    ys = torch.linspace(-1.0, 1.0, h, dtype=x.dtype, device=x.device).view(1, 1, h, 1).expand(n, 1, h, w)
+    xs = torch.linspace(-1.0, 1.0, w, dtype=x.dtype, device=x.device).view(1, 1, 1, w).expand(n, 1, h, w)
+    return torch.cat([x, xs, ys], dim=1)
+
+
+class StateEncoder(nn.Module):
+    """4-layer CNN mapping an RGB image to the reduced state (TraKDis' F_c).
+
+    Default (``head="keypoints"``): the image and two coordinate channels (CoordConv) go through
+    four 3x3 convolutions (ReLU between them) that keep the full resolution (``stem_stride=1``, padding 1);
+    a spatial soft-argmax turns each of the last layer's maps into an ``(x, y)`` keypoint, which,
+    with the maps' mean activations, feed Linear -> LayerNorm -> ReLU -> Linear(state_dim). The
+    reduced state is a handful of small things' positions (corners, pickers a few pixels wide at
+    32x32), so the architecture is built to localise them to a fraction of a pixel.
+
+    ``head="flatten", stem_stride=2, coord_channels=False`` is the earlier DrQ/SAC-AE layout
+    (stride-2 first layer, flatten + MLP), kept as the control arm of that choice.
 
     Args:
         state_dim: output width.
         image_size: input height and width (square images; default 32 as in the paper).
-        channels: output channels of the four conv layers.
+        channels: output channels of the four conv layers (the last one = number of keypoints).
         hidden_dim: width of the MLP head.
+        head: ``"keypoints"`` (spatial soft-argmax) or ``"flatten"``.
+        stem_stride: stride of the first conv layer (1 or 2).
+        coord_channels: append pixel-coordinate channels to the input.
 
     Input: uint8 ``[*B, H, W, 3]`` (env ``"pixels"``) or float ``[*B, 3, H, W]`` in [0, 1];
     output ``[*B, state_dim]``.
     """
 
-    def __init__(self, state_dim: int, *, image_size: int = 32, channels: Sequence[int] = (32, 32, 32, 32), hidden_dim: int = 256):
+    def __init__(self, state_dim: int, *, image_size: int = 32, channels: Sequence[int] = (32, 32, 32, 32),
+                 hidden_dim: int = 256, head: str = "keypoints", stem_stride: int = 1, coord_channels: bool = True):
         super().__init__()
         if len(channels) != 4:
             raise ValueError(f"StateEncoder has 4 conv layers; got channels={tuple(channels)}")
+        if head not in ("keypoints", "flatten"):
+            raise ValueError(f"StateEncoder: head must be 'keypoints' or 'flatten', got {head!r}")
+        if stem_stride not in (1, 2):
+            raise ValueError(f"StateEncoder: stem_stride must be 1 or 2, got {stem_stride!r}")
         if image_size < 11:
             raise ValueError(f"image_size={image_size} is too small for 4 conv layers (>= 11)")
         self.state_dim = state_dim
         self.image_size = image_size
-        layers, c_in = [], 3
+        self.config = {"state_dim": state_dim, "image_size": image_size, "channels": [int(c) for c in channels],
+                       "hidden_dim": hidden_dim, "head": head, "stem_stride": stem_stride,
+                       "coord_channels": bool(coord_channels)}
+        self.coord_channels = bool(coord_channels)
+        # "keypoints" keeps the resolution (padding 1); "flatten" is the earlier unpadded layout.
+        padding = 1 if head == "keypoints" else 0
+        layers, c_in = [], 3 + 2 * self.coord_channels
+        side = image_size
         for i, c_out in enumerate(channels):
-            layers += [nn.Conv2d(c_in, c_out, kernel_size=3, stride=2 if i == 0 else 1), nn.ReLU()]
+            stride = stem_stride if i == 0 else 1
+            layers += [nn.Conv2d(c_in, c_out, kernel_size=3, stride=stride, padding=padding), nn.ReLU()]
+            side = (side + 2 * padding - 3) // stride + 1
             c_in = c_out
+        if head == "keypoints":
+            layers.pop()  # the last maps are softmax logits: a ReLU would flatten them to uniform weights
         self.convs = nn.Sequential(*layers)
-        side = (image_size - 3) // 2 + 1 - 3 * 2
+        if head == "keypoints":
+            self.keypoints = SpatialSoftArgmax(side, side)
+            features = 3 * c_in  # (x, y) and mean activation per map
+        else:
+            self.keypoints = None
+            features = c_in * side * side
         self.head = nn.Sequential(
-            nn.Flatten(),
-            nn.Linear(c_in * side * side, hidden_dim),
+            nn.Linear(features, hidden_dim),
             nn.LayerNorm(hidden_dim),
             nn.ReLU(),
             nn.Linear(hidden_dim, state_dim),
         )
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """The head's input for float CHW images ``[N, 3, H, W]``."""
+        if self.coord_channels:
+            x = coordinate_channels(x)
+        maps = self.convs(x)
+        if self.keypoints is None:
+            return maps.flatten(1)
+        return torch.cat([self.keypoints(maps), maps.mean(dim=(-2, -1))], dim=-1)
 
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         x = to_float_chw(pixels)
@@ -77,4 +147,4 @@ class StateEncoder(nn.Module):
             )
         lead = x.shape[:-3]
         x = x.reshape(-1, *x.shape[-3:])
-        return self.head(self.convs(x)).reshape(*lead, self.state_dim)
+        return self.head(self.features(x)).reshape(*lead, self.state_dim)

@@ -219,13 +219,13 @@ class NormalizedEncoder(nn.Module):
         return self.encoder(pixels) * self.std + self.mean
 
 
+# Keys an encoder file written before the keypoint encoder lacks: they mean the earlier layout.
+_EARLIER_ENCODER_LAYOUT = {"head": "flatten", "stem_stride": 2, "coord_channels": False}
+
+
 def save_encoder(path: str | Path, encoder: NormalizedEncoder, *, task: str, extra: Mapping[str, Any] | None = None) -> Path:
-    inner = encoder.encoder
     return save_checkpoint(path, {
-        "kind": "encoder", "task": task,
-        "encoder_kwargs": {"state_dim": inner.state_dim, "image_size": inner.image_size,
-                           "channels": [m.out_channels for m in inner.convs if isinstance(m, nn.Conv2d)],
-                           "hidden_dim": inner.head[1].out_features},
+        "kind": "encoder", "task": task, "encoder_kwargs": dict(encoder.encoder.config),
         "state_dict": encoder.state_dict(), **dict(extra or {}),
     })
 
@@ -233,11 +233,14 @@ def save_encoder(path: str | Path, encoder: NormalizedEncoder, *, task: str, ext
 def encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder:
     from trakdis.modules import StateEncoder
 
-    kw = dict(data["encoder_kwargs"])
+    kw = {**_EARLIER_ENCODER_LAYOUT, **dict(data["encoder_kwargs"])}
     enc = NormalizedEncoder(StateEncoder(kw.pop("state_dim"), **kw), torch.zeros(1), torch.ones(1))
     enc.mean = torch.zeros(enc.encoder.state_dim)
     enc.std = torch.ones(enc.encoder.state_dim)
-    enc.load_state_dict(data["state_dict"])
+    try:
+        enc.load_state_dict(data["state_dict"])
+    except RuntimeError as err:
+        raise CheckpointError(f"encoder weights do not match its encoder_kwargs {data['encoder_kwargs']}: {err}") from err
     return enc.eval()
 
 
