@@ -73,6 +73,9 @@ class DistillConfig(OptimConfig, RunConfig):
     """learning rate"""
     warmup_steps: int = 20
     """linear learning-rate warm-up (updates)"""
+    loss_function: Literal["nll", "mse"] = "nll"
+    """distillation loss: the student's NLL of the teacher's action (the paper), or the squared
+    error of the two mean actions (see DistillationLoss)"""
     kl_coef: float = 0.0
     """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
     buffer_capacity: int = 200
@@ -112,6 +115,7 @@ def main(argv=None) -> dict:
     cfg = run.cfg
     from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
     from trakdis.objectives import DistillationLoss, DTLoss
+    from trakdis.envs import task_spec
     from trakdis.transforms import StateNoise
 
     teacher = load_policy(_resolve(cfg.teacher, cfg.root, "online_dt", "policy.pt"), device=cfg.device)
@@ -131,7 +135,8 @@ def main(argv=None) -> dict:
               f"weight copy {cfg.weight_copy}, {'distillation' if cfg.distill else 'expert imitation (--no-distill)'}")
 
     if cfg.distill:
-        loss = DistillationLoss(student, teacher.actor, kl_coef=cfg.kl_coef, action_eps=dt_cfg.action_eps)
+        loss = DistillationLoss(student, teacher.actor, kl_coef=cfg.kl_coef, loss_function=cfg.loss_function,
+                                action_eps=dt_cfg.action_eps)
         obs_keys = ("state", "state_estimate")
     else:
         loss = DTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
@@ -147,8 +152,6 @@ def main(argv=None) -> dict:
         # No-Distill: noise on the encoded expert data at sampling time, in state units (before
         # standardisation). With distillation the noise is already in the rollouts' estimates.
         steps.append(StateNoise(cfg.state_noise, in_keys=["state_estimate"]))
-    from trakdis.envs import task_spec
-
     proprio_dims = tuple(range(12, task_spec(task).state_dim)) if cfg.proprio_pickers else ()
     if proprio_dims:
         steps.append(ProprioceptionOverride(proprio_dims))
@@ -191,11 +194,17 @@ def main(argv=None) -> dict:
     def evaluate(handle, env, tag, prefix="eval"):
         was = student.training
         res = run_episodes(env, handle.make_policy(), cfg.eval_episodes, max_steps=horizon, desc=f"eval ({tag})",
-                           seed=eval_seed)  # the same eval configurations every time
+                           seed=eval_seed, keep_episodes=handle.uses_pixels)  # the same eval configurations every time
         student.train(was)
         s = res.summary()
-        run.log(counters["updates"], {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"]})
-        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} ({s['n']} eval episodes)")
+        metrics = {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"]}
+        if handle.uses_pixels:  # the encoder's error on the states the student visits (eval split)
+            err = torch.cat([(ep["state_estimate"] - ep["state"]).abs() for ep in res.episodes])
+            metrics.update({f"{prefix}/encoder_{k}": v for k, v in task_spec(task).state_error_cm(err).items()})
+        run.log(counters["updates"], metrics)
+        encoder_note = (f"; encoder error corners {metrics[f'{prefix}/encoder_corners_cm']:.2f} cm, pickers "
+                        f"{metrics[f'{prefix}/encoder_pickers_cm']:.2f} cm" if handle.uses_pixels else "")
+        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} ({s['n']} eval episodes{encoder_note})")
         return s["mean"]
 
     def checkpoint():

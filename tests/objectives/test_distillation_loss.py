@@ -2,7 +2,7 @@ import pytest
 import torch
 from dt_windows import random_window
 
-from trakdis.modules import DTConfig, StateEncoder, copy_teacher_weights, make_dt_actor
+from trakdis.modules import DTConfig, StateEncoder, copy_teacher_weights, find_dt_actor, make_dt_actor
 from trakdis.objectives import DistillationLoss
 
 S, A, B, K = 5, 3, 3, 4
@@ -136,3 +136,49 @@ def test_teacher_targets_are_deterministic_even_if_teacher_is_in_train_mode():
     a, b = loss(td.clone()), loss(td.clone())
     torch.testing.assert_close(a["loss_distill"], b["loss_distill"], rtol=0, atol=0)
     assert teacher.training  # the flag is restored
+
+
+def test_mse_loss_is_squared_error_of_mean_actions(actors):
+    student, teacher = actors
+    td = window()
+    out = DistillationLoss(student, teacher, loss_function="mse")(td.clone())
+    with torch.no_grad():
+        t_mean = torch.tanh(teacher.get_dist(td.clone()).root_dist.loc)
+        s_mean = torch.tanh(student.get_dist(td.clone()).root_dist.loc)
+        expected = (s_mean - t_mean).pow(2).sum(-1)[td["mask"]].mean()
+    torch.testing.assert_close(out["loss_distill"], expected)
+    out["loss_distill"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in student.parameters())
+
+
+def test_mse_ignores_a_gap_the_actions_do_not_show():
+    """Where both policies saturate, a pre-tanh gap changes no action: the NLL still charges it
+    (in units of the student's std), the action-space squared error does not."""
+    torch.manual_seed(0)
+    c = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0,
+                 attn_dropout=0.0, loc_bound=5.0, log_std_min=-2.5)
+    teacher = make_dt_actor(c, observation_key="state")
+    student = make_dt_actor(c, observation_key="state_estimate")
+    td = window(pad=(0, 0, 0))
+    td["state_estimate"] = td["state"].clone()
+
+    def set_heads(actor, loc_bias):
+        head = find_dt_actor(actor)
+        head.head_loc.weight.zero_()
+        head.head_loc.bias.fill_(loc_bias)  # loc = 5 tanh(bias / 5): 4.9997 (40) or 4.92 (12)
+        head.head_log_std.weight.zero_()
+        head.head_log_std.bias.fill_(-10.0)  # clamped to the floor, std = exp(-2.5)
+
+    with torch.no_grad():
+        set_heads(teacher, 40.0)
+        copy_teacher_weights(student, teacher)
+        set_heads(student, 12.0)
+    kw = {"action_eps": c.action_eps}
+    gap = {f: DistillationLoss(student, teacher, loss_function=f, **kw)(td.clone())["loss_distill"] for f in ("nll", "mse")}
+    assert gap["mse"] < 1e-8  # actions 0.99989 and 0.99991
+    with torch.no_grad():
+        set_heads(student, 40.0)
+    nll_same = DistillationLoss(student, teacher, **kw)(td.clone())["loss_distill"]
+    assert gap["nll"] > nll_same + 1.0  # the same actions, a larger NLL
+    with pytest.raises(ValueError, match="loss_function"):
+        DistillationLoss(student, teacher, loss_function="l1")

@@ -14,6 +14,7 @@ from trakdis.objectives.dt_loss import clamp_action, get_mask, masked_mean
 __all__ = ["DistillationLoss"]
 
 _KL_DIRECTIONS = ("teacher_student", "student_teacher")
+_LOSS_FUNCTIONS = ("nll", "mse")
 
 
 class DistillationLoss(LossModule):
@@ -23,8 +24,15 @@ class DistillationLoss(LossModule):
     (``"state_estimate"`` from the encoder); both read the same ``"action"``,
     ``"return_to_go"``, ``"timestep"`` and ``"mask"`` of the window.
 
-    * ``loss_distill = masked_mean(-log pi_S(a_T))`` with ``a_T = tanh(loc_T)``, the teacher's
-      deterministic action, computed under ``no_grad`` (clamped to ``[-1 + eps, 1 - eps]``).
+    * ``loss_function="nll"`` (the paper's cross-entropy): ``loss_distill = masked_mean(-log pi_S(a_T))``
+      with ``a_T = tanh(loc_T)``, the teacher's deterministic action, computed under ``no_grad``
+      (clamped to ``[-1 + eps, 1 - eps]``).
+    * ``loss_function="mse"``: ``loss_distill = masked_mean(sum_i (tanh(loc_S) - a_T)_i^2)``, the
+      squared error of the deterministic actions (DAgger's behaviour cloning). The NLL measures a
+      difference of pre-tanh means in units of the student's standard deviation, so where both
+      policies saturate (a grasp command at +-1, the same action) a pre-tanh gap still costs
+      ``gap^2 / (2 sigma^2)`` and dominates the loss and its gradient; the squared error in action
+      space costs what changes the action (docs/recipes/distill.md has the measurement).
     * ``loss_kl`` (only if ``kl_coef > 0``) = ``kl_coef`` x masked mean per-step KL, either
       ``"teacher_student"``: ``KL(pi_T || pi_S)`` (mode covering) or ``"student_teacher"``:
       ``KL(pi_S || pi_T)`` (mode seeking). Both policies are ``tanh`` of diagonal Gaussians and
@@ -43,6 +51,7 @@ class DistillationLoss(LossModule):
     Keyword Args:
         kl_coef: weight of ``loss_kl`` (0 disables it).
         kl_direction: ``"teacher_student"`` or ``"student_teacher"``.
+        loss_function: ``"nll"`` or ``"mse"`` (see above).
         action_eps: clamp of the teacher's actions away from +-1.
     """
 
@@ -69,9 +78,12 @@ class DistillationLoss(LossModule):
         *,
         kl_coef: float = 0.0,
         kl_direction: str = "teacher_student",
+        loss_function: str = "nll",
         action_eps: float = 1e-6,
     ) -> None:
         super().__init__()
+        if loss_function not in _LOSS_FUNCTIONS:
+            raise ValueError(f"loss_function={loss_function!r}; expected one of {_LOSS_FUNCTIONS}")
         if kl_direction not in _KL_DIRECTIONS:
             raise ValueError(f"kl_direction={kl_direction!r}; expected one of {_KL_DIRECTIONS}")
         if kl_coef < 0:
@@ -86,6 +98,7 @@ class DistillationLoss(LossModule):
         self.__dict__["teacher_network"] = teacher_actor
         self.kl_coef = float(kl_coef)
         self.kl_direction = kl_direction
+        self.loss_function = loss_function
         self.action_eps = float(action_eps)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
@@ -118,9 +131,13 @@ class DistillationLoss(LossModule):
         with torch.no_grad():
             t_dist = self.teacher_dist(tensordict)
             t_action = t_dist.deterministic_sample
-        log_prob = s_dist.log_prob(clamp_action(t_action, self.action_eps))
-        mask = get_mask(tensordict, self.tensor_keys.mask, log_prob, "DistillationLoss")
-        out = {"loss_distill": -masked_mean(log_prob, mask)}
+        s_action = s_dist.deterministic_sample
+        if self.loss_function == "nll":
+            per_step = -s_dist.log_prob(clamp_action(t_action, self.action_eps))
+        else:
+            per_step = (s_action - t_action).pow(2).sum(-1)
+        mask = get_mask(tensordict, self.tensor_keys.mask, per_step, "DistillationLoss")
+        out = {"loss_distill": masked_mean(per_step, mask)}
         if self.kl_coef > 0:
             # KL is invariant under a bijection applied to both distributions, and both are the
             # same tanh of a diagonal Gaussian: the KL of the TanhNormals is exactly the
@@ -133,5 +150,5 @@ class DistillationLoss(LossModule):
                 kl = torch.distributions.kl_divergence(s_base, t_base).sum(-1)
             out["loss_kl"] = self.kl_coef * masked_mean(kl, mask)
         with torch.no_grad():
-            out["teacher_student_mse"] = masked_mean((s_dist.deterministic_sample - t_action).pow(2).mean(-1), mask)
+            out["teacher_student_mse"] = masked_mean((s_action.detach() - t_action).pow(2).mean(-1), mask)
         return TensorDict(out, batch_size=[])
