@@ -60,6 +60,10 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature"""
     learn_temperature: bool = False
     """learn the entropy temperature toward a target entropy of -action_dim (Online DT)"""
+    state_scale_floor: float = 0.02
+    """lower bound (metres) of the state normaliser's per-dimension scale: about one pixel of the
+    32x32 camera at the cloth, so a near-constant coordinate (a corner's height) is not magnified into
+    many standard units by an error the student's image encoder cannot avoid (docs/recipes/distill.md)"""
     rtg_scale: float = 1.0
     """return-to-go scale (rewards and targets are multiplied by it)"""
     buffer_capacity: Optional[int] = None
@@ -164,7 +168,8 @@ def main(argv=None) -> dict:
         trajectories, lengths = load_trajectories(dataset, keys=("state", "action", "reward", "normalized_performance"))
         trajectories = trajectories.to_tensordict()
         valid = torch.arange(trajectories.shape[1]).unsqueeze(0) < lengths.unsqueeze(1)
-        counters["normalizer"] = StateNormalizer.fit(trajectories["state"][valid]).state_dict()
+        counters["normalizer"] = StateNormalizer.fit(trajectories["state"][valid],
+                                                      min_scale=cfg.state_scale_floor).state_dict()
         rets = trajectories["reward"].sum(dim=(-2, -1))
         final = trajectories["normalized_performance"][torch.arange(len(lengths)), lengths - 1]
         run.print(f"offline data: {trajectories.shape[0]} episodes from {dataset}; return {rets.mean():.3f} "
