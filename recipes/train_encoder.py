@@ -60,11 +60,11 @@ class TrainEncoderConfig(RunConfig):
     """channels of the 4 conv layers"""
     hidden_dim: int = 256
     """width of the MLP head"""
-    head: str = "keypoints"
-    """encoder head: 'keypoints' (spatial soft-argmax) or 'flatten' (the earlier layout)"""
-    stem_stride: int = 1
-    """stride of the first conv layer (2: the earlier layout)"""
-    coord_channels: bool = True
+    head: str = "flatten"
+    """encoder head: 'flatten' (conv features -> MLP) or 'keypoints' (spatial soft-argmax)"""
+    stem_stride: int = 2
+    """stride of the first conv layer (1 keeps the full resolution)"""
+    coord_channels: bool = False
     """append pixel-coordinate channels to the image (CoordConv)"""
     extra_noise: tuple[float, ...] = ()
     """also train on datasets of the same size collected with these expert movement noises (states
