@@ -114,7 +114,9 @@ class Run:
         seed_everything(cfg.seed)
         if run.resuming:
             if run.checkpoint_path.exists():
-                run._resume_state = load_checkpoint(run.checkpoint_path, map_location="cpu")
+                # One's own file, yet read like any other (weights_only); NumPy arrays are allowed
+                # for checkpoints written before the RNG state was stored as plain types.
+                run._resume_state = load_checkpoint(run.checkpoint_path, map_location="cpu", numpy_arrays=True)
                 run.print(f"resuming {directory} from step {run._resume_state.get('step', 0)}")
             else:
                 run.print(f"--resume: {run.checkpoint_path} does not exist yet; starting {directory} afresh")
