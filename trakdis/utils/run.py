@@ -100,7 +100,11 @@ class Run:
         cfg, explicit = parse_config(cfg_cls, argv, presets=presets, description=description)
         directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=cfg.resume)
         saved = directory / "config.json"
-        if cfg.resume and saved.exists():
+        if cfg.resume:
+            if not saved.is_file():  # resuming on the defaults would silently run another configuration
+                raise FileNotFoundError(
+                    f"--resume: {saved} is missing, so the configuration of run {directory} is unknown; restore "
+                    f"the file, or start a new run without --resume")
             # --stop-after belongs to one invocation: a resumed run never inherits it.
             cfg = apply_overrides(load_config(cfg_cls, saved), {"stop_after": None, **explicit})
         cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
