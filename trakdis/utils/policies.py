@@ -44,18 +44,35 @@ __all__ = [
 
 # --------------------------------------------------------------------------- environments
 def close_env(env) -> None:
-    """``env.close()`` without TorchRL's side effect on the thread count.
+    """``env.close()`` without TorchRL's side effect on the thread count, safe in a ``finally``.
 
     TorchRL 0.14's ``BatchedEnvBase.close`` (``SerialEnv``/``ParallelEnv``) raises torch's intra-op
     thread count to ``min(initial, current + num_workers)``, even for a ``SerialEnv`` that never
     lowered it. Measured here: with 1 thread requested and a 2-env ``SerialEnv`` closed, the next
     DT updates ran ~10x slower on a loaded 2-core machine (OpenMP threads spinning in libgomp).
+
+    Closing never hides the error that led to it: an env that is already closed, or never started
+    (TorchRL starts batched envs at their first reset, and ``close()`` on one raises "trying to
+    close a closed environment"), is skipped; and when ``close()`` fails while another exception is
+    propagating (``close_env`` in a ``finally``), its failure is only warned about, so the original
+    exception, Ctrl-C included, is the one raised.
     """
+    import sys
+    import warnings
+
     import torch
 
+    if getattr(env, "is_closed", False):
+        return
+    in_flight = sys.exc_info()[1]
     threads = torch.get_num_threads()
     try:
         env.close()
+    except Exception as err:
+        if in_flight is None:
+            raise
+        warnings.warn(f"close_env: closing {type(env).__name__} failed ({type(err).__name__}: {err}) while "
+                      f"{type(in_flight).__name__} was being raised; raising that one", RuntimeWarning, stacklevel=2)
     finally:
         torch.set_num_threads(threads)
 
