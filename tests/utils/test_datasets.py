@@ -61,3 +61,9 @@ def test_malformed_meta_is_a_dataset_error(tmp_path, content):
     (path / "meta.json").write_text(content)
     with pytest.raises(DatasetError, match="meta.json"):
         ensure_dataset(DataConfig(path=str(path)), task="ClothFold", horizon=100, seed=0, pixels=True)
+
+
+def test_horizon_below_one_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="--horizon 0"):
+        ensure_dataset(DataConfig(root=str(tmp_path)), task="ClothFold", horizon=0, seed=0, pixels=True)
+    assert list(tmp_path.iterdir()) == []

@@ -53,6 +53,8 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 
     from trakdis.envs import EXPERT_VERSION
 
+    if horizon < 1:
+        raise ValueError(f"--horizon {horizon}: the episode length must be >= 1")
     path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels, image_size=image_size)
     if (path / "meta.json").exists():
         meta = read_meta(path)

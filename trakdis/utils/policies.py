@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -117,6 +118,8 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
 
     from trakdis.transforms import EncoderTransform, ImageResize, ReturnToGo, StateNoise
 
+    if not (math.isfinite(state_noise) and state_noise >= 0):  # -1 or nan were skipped silently
+        raise ValueError(f"state_noise must be a finite std >= 0, got {state_noise!r}")
     agent_key = "pixels"
     transforms = []
     if video_size is not None:
@@ -346,10 +349,12 @@ class PolicyHandle:
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
                 expert_noise: float = 0.0, device: str = "cpu") -> PolicyHandle:
     """``"expert"`` or the path of a policy file (or of a run directory holding ``policy.pt``)."""
+    if horizon is not None and horizon < 1:  # 0 used to mean "the policy's own"
+        raise ValueError(f"horizon must be >= 1 (None: the policy's own), got {horizon}")
     if str(spec) == "expert":
         if task is None:
             raise ValueError("the expert policy needs --task")
-        return PolicyHandle("expert", task, horizon or 100, expert_noise=expert_noise, source="expert")
+        return PolicyHandle("expert", task, 100 if horizon is None else horizon, expert_noise=expert_noise, source="expert")
     path = Path(spec)
     if path.is_dir():
         path = path / "policy.pt"
@@ -369,7 +374,7 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
     if data["kind"] == "student" and encoder is None:
         raise CheckpointError(f"{path}: a student policy file must contain its encoder")
     return PolicyHandle(
-        data["kind"], data["task"], horizon or data["horizon"], actor=actor.eval(), encoder=encoder,
+        data["kind"], data["task"], data["horizon"] if horizon is None else horizon, actor=actor.eval(), encoder=encoder,
         observation_key=data["observation_key"], target_return=data["target_return"],
         rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
         normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
