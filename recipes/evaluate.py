@@ -11,6 +11,7 @@ end) and ``videos/`` (a few extra episodes: large render side by side with the a
 """
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass
 from typing import Literal, Optional
@@ -54,6 +55,17 @@ class EvaluateConfig(RunConfig):
     """side of the large render in the videos"""
     fps: float = 10.0
     """video frame rate"""
+
+    def __post_init__(self):
+        # checked while the command line is parsed, before the run directory exists
+        if not self.state_noise:
+            raise ValueError("--state-noise needs at least one noise level")
+        bad = [s for s in self.state_noise if not (math.isfinite(s) and s >= 0)]
+        if bad:
+            raise ValueError(f"--state-noise {bad[0]!r}: every noise level must be a finite std >= 0 "
+                             f"(got {list(self.state_noise)})")
+        if self.horizon is not None and self.horizon < 1:
+            raise ValueError(f"--horizon {self.horizon}: the episode length must be >= 1 (none: the policy's own)")
 
 
 def main(argv=None) -> pd.DataFrame:

@@ -111,6 +111,10 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     checkpoint_every: int = 500
     """checkpoint every N offline updates (online: after every round)"""
 
+    def __post_init__(self):
+        if self.horizon < 1:  # checked while parsing, before the run directory exists
+            raise ValueError(f"--horizon {self.horizon}: the episode length must be >= 1")
+
 
 PRESETS = {
     "paper": {

@@ -184,3 +184,93 @@ def test_resume_after_sigkill(tmp_path):
     ref_steps, ref_meta = load_dataset(_collect(tmp_path / "ref", num_episodes=5))
     steps, meta = load_dataset(path)
     assert torch.equal(meta["lengths"], ref_meta["lengths"]) and (steps == ref_steps).all()
+
+
+def _files(root):
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("name,cut", [("steps/state.memmap", 4), ("steps/pixels.memmap", 100), ("length.memmap", 8),
+                                      ("steps/action.memmap", -4)])
+def test_file_of_the_wrong_size_is_refused_and_left_as_it_is(tmp_path, name, cut):
+    path = _collect(tmp_path / "ds", num_episodes=2)
+    file = path / "data" / name
+    data = file.read_bytes()
+    file.write_bytes(data[:-cut] if cut > 0 else data + bytes(-cut))  # truncated, or too long
+    before = _files(path)
+    with pytest.raises(DatasetError, match=rf"{name.split('/')[-1]} does not match meta.json: it holds "
+                                           rf"{len(data) - cut} bytes.*{len(data)} bytes \(the file is "):
+        load_dataset(path)
+    assert _files(path) == before  # nothing padded or rewritten
+
+
+def test_loaded_dataset_is_read_only_on_disk(tmp_path):
+    path = _collect(tmp_path / "ds", num_episodes=2)
+    before = _files(path)
+    steps, meta = load_dataset(path)
+    steps["state"][0] = 123.0  # stays in this process's memory
+    steps["done"][:] = True
+    assert _files(path) == before
+    again, _ = load_dataset(path)
+    assert (again["state"][0] != 123.0).all() and torch.equal(again["step_count"], steps["step_count"])
+
+
+def test_malformed_meta_json_names_file_and_key(tmp_path):
+    path = _collect(tmp_path / "ds", num_episodes=1)
+    meta = json.loads((path / "meta.json").read_text())
+    bad = {
+        "list": ([meta], "holds a JSON list"),
+        "null": (None, "holds a JSON NoneType"),
+        "no task": ({k: v for k, v in meta.items() if k != "task"}, "'task' is missing"),
+        "no horizon": ({k: v for k, v in meta.items() if k != "horizon"}, "'horizon' is missing"),
+        "no keys": ({k: v for k, v in meta.items() if k != "keys"}, "'keys' is missing"),
+        "float episodes": (dict(meta, num_episodes=1.5), "'num_episodes' must be an int >= 1"),
+        "keys a list": (dict(meta, keys=["state"]), "'keys' must map"),
+        "key spec null": (dict(meta, keys={**meta["keys"], "state": None}), "'keys.state' must be"),
+        "bad shape": (dict(meta, keys={**meta["keys"], "state": {"shape": "2", "dtype": "float32"}}), "'keys.state.shape'"),
+        "bad dtype": (dict(meta, keys={**meta["keys"], "state": {"shape": [2], "dtype": "object"}}), "'keys.state.dtype'"),
+        "path as key": (dict(meta, keys={**meta["keys"], "../x": {"shape": [], "dtype": "uint8"}}), "'keys.../x' is not a plain"),
+    }
+    for label, (content, message) in bad.items():
+        (path / "meta.json").write_text(json.dumps(content))
+        with pytest.raises(DatasetError, match="meta.json.*" + message.replace("(", r"\(").replace(".", r"\.")):
+            load_dataset(path)
+    (path / "meta.json").write_text(json.dumps(dict(meta, keys={k: v for k, v in meta["keys"].items() if k != "action"})))
+    with pytest.raises(DatasetError, match=r"lacks the per-step keys \['action'\]"):
+        load_dataset(path)
+
+
+def test_second_collection_into_the_same_path_is_refused(tmp_path):
+    import fcntl
+    import os
+
+    def kill(done, total):
+        raise _Killed
+
+    path = tmp_path / "ds"
+    with pytest.raises(_Killed):
+        _collect(path, num_episodes=3, callback=kill)
+    before = _files(partial_path(path))
+    fd = os.open(partial_path(path), os.O_RDONLY)  # another collection at work holds this lock
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    try:
+        with pytest.raises(DatasetError, match=rf"another collection is writing .*{path.name}"):
+            _collect(path, num_episodes=3)
+        with pytest.raises(DatasetError, match="another collection is writing"):
+            _collect(path, num_episodes=3, seed=1)  # refused before its settings are even compared
+        assert _files(partial_path(path)) == before and not path.exists()
+    finally:
+        os.close(fd)
+    assert load_dataset(_collect(path, num_episodes=3))[0].batch_size == (3, H)  # free again: it resumes
+
+
+def test_no_progress_env_var_wins_over_progress_true(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("TRAKDIS_NO_PROGRESS", "1")
+    _collect_bar = functools.partial(collect_expert_dataset, task="Toy", num_episodes=1, horizon=H, progress=True,
+                                     make_env_fn=functools.partial(make_toy_collect_env, horizon=H, min_len=3, max_len=9),
+                                     make_policy_fn=make_toy_policy)
+    _collect_bar(tmp_path / "quiet")
+    assert "collect Toy" not in capsys.readouterr().err
+    monkeypatch.setenv("TRAKDIS_NO_PROGRESS", "0")
+    _collect_bar(tmp_path / "loud")
+    assert "collect Toy" in capsys.readouterr().err

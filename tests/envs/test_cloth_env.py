@@ -146,3 +146,40 @@ def test_unstable_physics_truncates_without_nan(speed):
 def test_env_classes_fix_their_task():
     for task, cls in ENV_CLASSES.items():
         assert cls(**SHORT).task == task
+
+
+def test_bad_construction_and_reset_options_are_refused():
+    # each used to pass: NaN left the env with sim_unstable=False, 3.7 was truncated to 3, and
+    # resolutions 31-40 (documented as valid) failed at reset with MuJoCo XML or memory errors
+    from trakdis.envs.cloth_env import MAX_RESOLUTION
+
+    for kwargs, message in [
+        (dict(move_per_substep=float("nan")), "move_per_substep must be a finite number > 0"),
+        (dict(move_per_substep=-0.01), "move_per_substep"),
+        (dict(grasp_radius=float("inf")), "grasp_radius"),
+        (dict(config_index=3.7), r"config_index must be an int in \[0, 1000\), got 3.7"),
+        (dict(config_index=True), "config_index"),
+        (dict(config_index=1000), "config_index"),
+        (dict(resolution=MAX_RESOLUTION + 1), r"resolution must be an int in \[4, 30\], got 31"),
+        (dict(resolution=40), "resolution"),
+        (dict(resolution=3), "resolution"),
+        (dict(resolution=12.0), "resolution"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            ClothEnv(task="ClothFold", **kwargs, **SHORT)
+    env = ClothEnv(task="ClothFold", config_index=np.int64(3), **SHORT)
+    assert env.reset(seed=0)[1]["config_index"] == 3
+    with pytest.raises(ValueError, match=r"reset option config_index must be an int .* got 3.7"):
+        env.reset(seed=0, options={"config_index": 3.7})
+    with pytest.raises(ValueError, match="picker_pos must be finite"):
+        env.reset(seed=0, options={"picker_pos": [(0.0, float("nan"), 0.1), (0.1, 0.0, 0.1)]})
+
+
+def test_finest_allowed_resolution_resets_and_steps():
+    from trakdis.envs.cloth_env import MAX_RESOLUTION
+
+    # the smallest cloth of the train pool (0.24 m): the case that fails above the limit
+    env = ClothEnv(task="ClothFold", resolution=MAX_RESOLUTION, config_index=893, horizon=2)
+    obs, _ = env.reset(seed=0)
+    obs, *_, info = env.step(np.zeros(8, np.float32))
+    assert np.isfinite(obs["state"]).all() and not info["sim_unstable"]

@@ -185,3 +185,23 @@ def test_training_mode_with_dropout_keeps_causality_and_padding_invariance():
     h3 = run(dt, td3)
     torch.testing.assert_close(h3[:, :30], h[:, :30], rtol=0, atol=1e-5)
     assert not torch.allclose(h3[:, 30:], h[:, 30:], atol=1e-3)
+
+
+def test_actor_takes_float64_and_names_empty_or_non_float_inputs():
+    """Empty batches and float64 windows used to fail inside torch (reshape / matmul dtype errors)."""
+    actor = make_dt_actor(small_config(), observation_key="observation").eval()
+    td = window()
+    td64 = td.clone()
+    for key in ("observation", "action", "return_to_go"):
+        td64[key] = td[key].double()
+    # float64 windows are cast to the model's dtype, as DTActingPolicy already did when acting
+    torch.testing.assert_close(actor.get_dist(td64).root_dist.loc, actor.get_dist(td).root_dist.loc)
+    assert actor(td64.clone())["action"].dtype == torch.float32
+    with pytest.raises(ValueError, match=r"empty input: 'observation' has shape \(0, 6, 5\)"):
+        actor(td[:0].clone())
+    with pytest.raises(ValueError, match=r"empty input: 'observation' has shape \(4, 0, 5\)"):
+        actor.get_dist(td[:, :0].clone())
+    bad = td.clone()
+    bad["observation"] = torch.ones(4, 6, S, dtype=torch.long)
+    with pytest.raises(TypeError, match="'observation' must be a floating-point tensor, got torch.int64"):
+        actor(bad)

@@ -146,3 +146,34 @@ def test_input_dtypes_are_converted(actor):
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         torch.testing.assert_close(policy(td64)["action"], policy(td)["action"])
+
+
+@pytest.mark.parametrize("mode", ["window", "kv_cache"])
+def test_empty_batch_and_non_finite_inputs_are_refused(actor, mode):
+    policy = DTActingPolicy(actor, mode=mode)
+
+    def step(state, rtg=None, step_count=0):
+        n = state.shape[0]
+        return TensorDict(state=state, return_to_go=torch.ones(n, 1) if rtg is None else rtg,
+                          step_count=torch.full((n, 1), step_count), batch_size=[n])
+
+    with pytest.raises(ValueError, match=r"empty batch: 'state' has shape \(0, 5\)"):
+        policy(step(torch.randn(0, S)))
+    g = torch.Generator().manual_seed(0)
+    first = step(torch.randn(2, S, generator=g))
+    policy(first)
+    nan = torch.randn(2, S, generator=g)
+    nan[1, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"'state' holds NaN or inf values \(envs \[1\]"):
+        policy(step(nan, step_count=1))
+    with pytest.raises(ValueError, match="'return_to_go' holds NaN"):
+        policy(step(torch.randn(2, S), rtg=torch.tensor([[1.0], [float("inf")]]), step_count=1))
+    # the refused steps left the context as it was: the next finite step acts as if they never came
+    fresh = DTActingPolicy(actor, mode=mode)
+    fresh(first.clone())
+    ok = step(torch.randn(2, S, generator=g), step_count=1)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        a = policy(ok.clone())["action"]
+        b = fresh(ok.clone())["action"]
+    assert torch.isfinite(a).all()
+    torch.testing.assert_close(a, b)

@@ -174,3 +174,17 @@ def test_paper_preset_config():
     module = load_recipe("distill")
     cfg, _ = parse_config(module.DistillConfig, ["--preset", "paper"], presets=module.PRESETS)
     assert cfg.rounds == 60 and cfg.optimizer == "lamb"
+
+
+@pytest.mark.parametrize("recipe,args,message", [
+    ("evaluate", ["--state-noise", "-1"], r"--state-noise -1\.0: every noise level must be a finite std >= 0"),
+    ("evaluate", ["--state-noise", "0", "nan"], r"--state-noise nan"),
+    ("evaluate", ["--horizon", "0"], r"--horizon 0"),
+    ("online_dt", ["--horizon", "0"], r"--horizon 0"),
+])
+def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, recipe, args, message):
+    # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError, match=message):
+        load_recipe(recipe).main(["--name", "bad", "--task", "ClothFold", *args])
+    assert list(tmp_path.iterdir()) == []

@@ -4,6 +4,7 @@ import random
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 
 from trakdis.utils.checkpoint import (
     CheckpointError,
@@ -73,3 +74,75 @@ def test_clear_errors(tmp_path):
         restore_state({"step": 1}, {"model": torch.nn.Linear(1, 1)})
     with pytest.raises(CheckpointError, match="restoring 'model'"):
         restore_state({"model": torch.nn.Linear(2, 2).state_dict()}, {"model": torch.nn.Linear(1, 1)})
+
+
+class _Payload:
+    """Unpickling this runs code: it creates ``marker`` (what a crafted policy.pt would do)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return exec, (f"open({self.marker!r}, 'w').close()",)
+
+
+def _crafted(path, marker, **entries):
+    # written with plain torch.save, as an attacker would, with save_checkpoint's format entry
+    torch.save({"format": "trakdis-checkpoint", **entries, "payload": _Payload(marker)}, path)
+    return path
+
+
+def test_crafted_file_runs_no_code(tmp_path):
+    from trakdis.utils.policies import load_encoder, load_policy
+
+    marker = tmp_path / "pwned"
+    policy = _crafted(tmp_path / "policy.pt", marker, kind="teacher", task="ClothFold", dt_config={}, actor={},
+                      observation_key="state")
+    encoder = _crafted(tmp_path / "encoder.pt", marker, kind="encoder")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    for load in (lambda: load_policy(policy), lambda: load_encoder(encoder), lambda: load_checkpoint(policy),
+                 lambda: load_checkpoint(policy, numpy_arrays=True)):  # the resume checkpoint's loader too
+        with pytest.raises(CheckpointError, match=r"(policy|encoder)\.pt was refused.*weights_only"):
+            load()
+    assert not marker.exists()
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_resume_checkpoint_loads_with_weights_only(tmp_path):
+    """What a recipe checkpoints (optimizer, scheduler, replay buffer, RNG states, counters) loads
+    with torch.load(weights_only=True) and nothing allow-listed."""
+    from trakdis.data import TrajectoryReplayBuffer
+
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 1.0)
+    model(torch.randn(4, 3)).sum().backward()
+    opt.step()
+    sched.step()
+    rb = TrajectoryReplayBuffer(capacity=2, context_len=2, max_len=3, keys=("state", "action"), seed=0)
+    rb.add_trajectory(TensorDict({"state": torch.randn(3, 2), "action": torch.zeros(3, 1), "reward": torch.zeros(3, 1)}, [3]))
+    np.random.seed(5)
+    state = capture_state({"model": model, "optim": opt, "sched": sched, "buffer": rb},
+                          counters={"updates": 3, "best": None, "normalizer": {"loc": torch.zeros(2), "keys": ["state"]}})
+    expected = np.random.rand(3)
+    path = save_checkpoint(tmp_path / "ck.pt", state)
+    torch.load(path, weights_only=True)  # no allow-list needed
+    np.random.seed(0)
+    restore_state(load_checkpoint(path), {})  # the NumPy RNG state round-trips exactly through plain types
+    assert np.array_equal(np.random.rand(3), expected)
+
+
+def test_old_resume_checkpoint_with_numpy_rng_state(tmp_path):
+    # written before rng_state() stored plain types: NumPy's legacy tuple (an ndarray inside)
+    path = tmp_path / "old.pt"
+    np.random.seed(3)
+    torch.save({"format": "trakdis-checkpoint", "step": 4,
+                "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}},
+               path)
+    expected = np.random.rand(2)
+    with pytest.raises(CheckpointError, match="old.pt was refused"):
+        load_checkpoint(path)  # policy and encoder files never need NumPy arrays
+    ck = load_checkpoint(path, numpy_arrays=True)
+    np.random.seed(0)
+    restore_state(ck, {})
+    assert ck["step"] == 4 and np.array_equal(np.random.rand(2), expected)

@@ -8,12 +8,13 @@ from trakdis.envs import EXPERT_VERSION
 from trakdis.utils.datasets import DataConfig, default_dataset_path, ensure_dataset
 
 
-def _fake_dataset(path, expert_version):
+def _fake_dataset(path, expert_version, task="ClothFold", horizon=100):
     path.mkdir(parents=True)
-    config = {"task": "ClothFold"}
+    config = {"task": task}
     if expert_version is not None:
         config["expert_version"] = expert_version
-    (path / "meta.json").write_text(json.dumps({"format": "trakdis-dataset", "version": 1, "config": config}))
+    (path / "meta.json").write_text(json.dumps({"format": "trakdis-dataset", "version": 1, "task": task,
+                                                "num_episodes": 3, "horizon": horizon, "keys": {}, "config": config}))
 
 
 def test_default_name():
@@ -39,3 +40,30 @@ def test_default_dataset_of_the_current_expert_is_used(tmp_path):
     path = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
     _fake_dataset(path, EXPERT_VERSION)
     assert ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True) == path
+
+
+@pytest.mark.parametrize("task,horizon", [("ClothFoldDiagonalPinned", 100), ("ClothFold", 20)])
+def test_dataset_of_another_task_or_horizon_is_refused(tmp_path, task, horizon):
+    """A pinned dataset must not train a policy labelled unpinned, nor horizon-20 data a horizon-30 run."""
+    path = tmp_path / "data"
+    _fake_dataset(path, EXPERT_VERSION, task=task, horizon=horizon)
+    before = (path / "meta.json").read_bytes()
+    with pytest.raises(DatasetError, match=rf"dataset {path} \(--data.path\) holds task {task} with horizon {horizon}, "
+                                           rf"but this run asks for --task ClothFoldDiagonalUnpinned --horizon 30"):
+        ensure_dataset(DataConfig(path=str(path)), task="ClothFoldDiagonalUnpinned", horizon=30, seed=0, pixels=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"] and (path / "meta.json").read_bytes() == before
+
+
+@pytest.mark.parametrize("content", ["[]", "null", '{"format": "trakdis-dataset", "version": 1, "task": "ClothFold"}'])
+def test_malformed_meta_is_a_dataset_error(tmp_path, content):
+    path = tmp_path / "data"
+    path.mkdir()
+    (path / "meta.json").write_text(content)
+    with pytest.raises(DatasetError, match="meta.json"):
+        ensure_dataset(DataConfig(path=str(path)), task="ClothFold", horizon=100, seed=0, pixels=True)
+
+
+def test_horizon_below_one_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="--horizon 0"):
+        ensure_dataset(DataConfig(root=str(tmp_path)), task="ClothFold", horizon=0, seed=0, pixels=True)
+    assert list(tmp_path.iterdir()) == []

@@ -109,3 +109,41 @@ def test_close_env_keeps_thread_count():
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_close_env_never_masks_the_original_error():
+    """close_env in a finally on an env that never started (the error came before its first reset)
+    used to raise "trying to close a closed environment" over the real error."""
+    from trakdis.utils.policies import close_env
+
+    env = SerialEnv(2, make)
+    assert env.is_closed  # TorchRL starts it at the first reset
+    with pytest.raises(ValueError, match="the real error"):
+        try:
+            raise ValueError("the real error")
+        finally:
+            close_env(env)
+    with pytest.raises(KeyboardInterrupt):  # Ctrl-C stays Ctrl-C
+        try:
+            raise KeyboardInterrupt
+        finally:
+            close_env(env)
+    close_env(env)  # never started, no error in flight: nothing to do
+    env.rollout(2, policy)
+    close_env(env)
+    close_env(env)  # closing twice is harmless
+
+    class Failing:
+        is_closed = False
+
+        def close(self):
+            raise RuntimeError("close failed")
+
+    with pytest.warns(RuntimeWarning, match="close failed.*ValueError"):
+        with pytest.raises(ValueError, match="the real error"):
+            try:
+                raise ValueError("the real error")
+            finally:
+                close_env(Failing())
+    with pytest.raises(RuntimeError, match="close failed"):  # alone, a failing close is an error
+        close_env(Failing())

@@ -48,3 +48,29 @@ def test_fresh_stop_resume(tmp_path):
     assert (run.dir / "curves.png").exists()
     with pytest.raises(FileExistsError):
         train(["--root", root, "--name", "a"])
+
+
+def _tree(root):
+    return {p.relative_to(root).as_posix(): p.read_bytes() if p.is_file() else None for p in sorted(root.rglob("*"))}
+
+
+@pytest.mark.parametrize("name", ["../..", "..", ".", "", "a/b", "/abs", "ABSOLUTE"])
+def test_run_name_cannot_leave_the_run_root(tmp_path, name):
+    name = str(tmp_path / "elsewhere") if name == "ABSOLUTE" else name
+    (tmp_path / "config.json").write_text("{}")  # what ../.. would overwrite
+    (tmp_path / "summary.md").write_text("mine")
+    before = _tree(tmp_path)
+    for extra in ([], ["--resume"]):
+        with pytest.raises(ValueError, match=r"--name .* is not a plain run name"):
+            train(["--root", str(tmp_path / "runs"), "--name", name, "--no-progress", *extra])
+    assert _tree(tmp_path) == before
+
+
+def test_resume_without_config_json_is_refused(tmp_path):
+    root = str(tmp_path)
+    run, _ = train(["--root", root, "--name", "a", "--stop-after", "2", "--preset", "slow", "--no-progress"])
+    (run.dir / "config.json").unlink()
+    before = _tree(tmp_path)
+    with pytest.raises(FileNotFoundError, match=r"--resume: .*a/config.json is missing"):
+        train(["--root", root, "--resume", "--name", "a"])
+    assert _tree(tmp_path) == before

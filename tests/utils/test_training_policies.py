@@ -143,3 +143,18 @@ def test_parallel_batched_env_matches_serial():
     assert parallel.batch_size == serial.batch_size == torch.Size([2, 4])
     torch.testing.assert_close(parallel["state"], serial["state"])
     torch.testing.assert_close(parallel["next", "reward"], serial["next", "reward"])
+
+
+def test_bad_state_noise_and_horizon_are_refused(tmp_path):
+    from trakdis.utils.policies import make_acting_env
+
+    for sigma in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="state_noise must be a finite std >= 0"):
+            make_acting_env("ClothFold", state_noise=sigma)
+    cfg, actor = tiny_actor()
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFold", horizon=10, dt_config=cfg,
+                actor=actor, observation_key="state", target_return=-1.0, rtg_scale=1.0)
+    for spec in (tmp_path, "expert"):
+        with pytest.raises(ValueError, match="horizon must be >= 1"):
+            load_policy(spec, task="ClothFold", horizon=0)
+    assert load_policy(tmp_path).horizon == 10 and load_policy(tmp_path, horizon=3).horizon == 3

@@ -10,6 +10,7 @@ from .dataset import (
     collect_expert_dataset,
     load_dataset,
     partial_path,
+    read_meta,
 )
 
 __all__ = [
@@ -21,4 +22,5 @@ __all__ = [
     "collect_expert_dataset",
     "load_dataset",
     "partial_path",
+    "read_meta",
 ]

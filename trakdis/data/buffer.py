@@ -162,7 +162,7 @@ class WindowSampler(Sampler):
         torch.save(self.state_dict(), f"{path}/window_sampler.pt")
 
     def loads(self, path):
-        self.load_state_dict(torch.load(f"{path}/window_sampler.pt"))
+        self.load_state_dict(torch.load(f"{path}/window_sampler.pt", weights_only=True))
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(capacity={self.capacity}, context_len={self.context_len})"

@@ -12,14 +12,23 @@ records progress in ``<path>.partial/progress.json`` after each chunk (atomic re
 the directory to ``<path>`` only when every episode is written. A killed collection is resumed by
 calling :func:`collect_expert_dataset` again with the same arguments: finished chunks are kept and,
 since each chunk's env and policy seeds derive from ``(seed, chunk index)`` only, the result equals
-an uninterrupted collection.
+an uninterrupted collection. One collection at a time writes into ``<path>.partial/`` (an exclusive
+``fcntl.flock`` on the directory); a second one is refused.
+
+:func:`load_dataset` reads any dataset as untrusted input: ``meta.json`` is validated, every data
+file's size must equal what its ``meta.json`` shape and dtype give, and the files are mapped
+read-only (copy-on-write: the file is opened read-only, in-memory writes never reach the disk, and
+no pickle is ever read). Only collection (writing its own ``.partial`` directory) opens them for writing.
 """
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import json
+import math
 import os
+import re
 import shutil
 import time
 from pathlib import Path
@@ -37,6 +46,7 @@ __all__ = [
     "collect_expert_dataset",
     "load_dataset",
     "partial_path",
+    "read_meta",
 ]
 
 DATASET_FORMAT = "trakdis-dataset"
@@ -60,6 +70,37 @@ REQUIRED_KEYS = ("state", "action", "reward", "done", "terminated", "truncated",
 
 class DatasetError(RuntimeError):
     """A dataset directory is missing, unfinished, of another format/version, or inconsistent."""
+
+
+def _progress_enabled(progress: bool) -> bool:
+    """``TRAKDIS_NO_PROGRESS=1`` silences the bar even when ``progress=True`` was passed."""
+    return bool(progress) and os.environ.get("TRAKDIS_NO_PROGRESS", "0") in ("", "0")
+
+
+class _CollectionLock:
+    """An exclusive, non-blocking ``flock`` on the ``.partial`` directory of one collection: a second
+    collection into the same path (another process, or another call in this one) is refused instead
+    of colliding on its files. The OS releases it when the process dies (a SIGKILL leaves no stale lock)."""
+
+    def __init__(self, directory: Path, target: Path):
+        try:
+            self.fd = os.open(directory, os.O_RDONLY)
+        except FileNotFoundError:  # another collection just finished and renamed it
+            raise DatasetError(f"collect_expert_dataset: another collection was writing {target} ({directory} "
+                               f"vanished); use its dataset") from None
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.fd)
+            raise DatasetError(
+                f"collect_expert_dataset: another collection is writing {target} right now (it holds the lock "
+                f"on {directory}); wait for it to finish and use its dataset, or choose another path"
+            ) from None
+
+    def release(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)  # closing the descriptor releases the flock
+            self.fd = None
 
 
 def partial_path(path: str | os.PathLike) -> Path:
@@ -184,9 +225,6 @@ def collect_expert_dataset(
     Returns:
         The dataset path. Resume a killed collection by calling again with the same arguments.
     """
-    from torchrl.collectors import Collector
-    from torchrl.envs import ParallelEnv
-
     path = Path(path)
     if num_episodes < 1 or num_workers < 1 or horizon < 1:
         raise ValueError(
@@ -213,9 +251,28 @@ def collect_expert_dataset(
         "render_version": RENDER_VERSION if from_pixels and make_env_fn is None else None,
     }
     tmp = partial_path(path)
+    tmp.mkdir(parents=True, exist_ok=True)
+    lock = _CollectionLock(tmp, path)
+    try:
+        if path.exists() and not overwrite:  # another collection finished it while this one started
+            raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
+        return _collect_into(
+            path, tmp, config, task=task, num_episodes=num_episodes, num_workers=num_workers, image_size=image_size,
+            from_pixels=from_pixels, noise=noise, seed=seed, split=split, horizon=horizon, progress=progress,
+            callback=callback, make_env_fn=make_env_fn, make_policy_fn=make_policy_fn, mp_start_method=mp_start_method)
+    finally:
+        lock.release()
+
+
+def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, num_workers, image_size, from_pixels,
+                  noise, seed, split, horizon, progress, callback, make_env_fn, make_policy_fn, mp_start_method) -> Path:
+    """The body of :func:`collect_expert_dataset`, run while it holds the lock on ``tmp``."""
+    from torchrl.collectors import Collector
+    from torchrl.envs import ParallelEnv
+
     progress_file = tmp / "progress.json"
     chunks_done = 0
-    if tmp.exists():
+    if progress_file.exists():
         try:
             state = json.loads(progress_file.read_text())
         except (OSError, ValueError) as err:
@@ -231,7 +288,6 @@ def collect_expert_dataset(
             )
         chunks_done = int(state["chunks_done"])
     else:
-        tmp.mkdir(parents=True)
         _write_json_atomic(progress_file, {"config": config, "chunks_done": 0, "episodes_done": 0})
 
     W = int(num_workers)
@@ -243,13 +299,13 @@ def collect_expert_dataset(
     from tqdm.auto import tqdm
 
     bar = tqdm(
-        total=num_episodes, initial=min(chunks_done * W, num_episodes), disable=not progress,
+        total=num_episodes, initial=min(chunks_done * W, num_episodes), disable=not _progress_enabled(progress),
         unit="ep", desc=f"collect {task}",
     )
     t_start = time.perf_counter()
     data = None
     if chunks_done > 0:
-        data = TensorDict.load_memmap(tmp / "data")
+        data = TensorDict.load_memmap(tmp / "data", allow_pickle=False)  # the writer's own files, read-write
     # TorchRL 0.14 changes torch's intra-op thread count when it starts and shuts down a
     # ParallelEnv (it lowers it by the number of workers, then raises it again, up to the initial
     # default of all cores). Measured: a recipe that set 1 thread and collected its dataset first
@@ -341,17 +397,98 @@ def collect_expert_dataset(
     return path
 
 
+_DTYPES = {name: getattr(torch, name) for name in (
+    "float16", "bfloat16", "float32", "float64", "uint8", "int8", "int16", "int32", "int64", "bool")}
+_KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def _meta_error(meta_file: Path, key: str, problem: str) -> DatasetError:
+    return DatasetError(f"load_dataset: {meta_file}: {key!r} {problem}")
+
+
+def read_meta(path: str | os.PathLike) -> dict:
+    """``<path>/meta.json``, checked: a JSON object of this format and version whose ``task``,
+    ``num_episodes``, ``horizon`` and ``keys`` (``{key: {"shape": [ints], "dtype": name}}``) are
+    well-formed. Raises :class:`DatasetError` naming the file and the offending key."""
+    path = Path(path)
+    meta_file = path / "meta.json"
+    if not meta_file.exists():
+        raise DatasetError(f"load_dataset: {path} has no meta.json: not a trakdis dataset, or an unfinished one")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (ValueError, OSError) as err:
+        raise DatasetError(f"load_dataset: {meta_file} is not valid JSON ({err})") from err
+    if not isinstance(meta, dict):
+        raise DatasetError(f"load_dataset: {meta_file} holds a JSON {type(meta).__name__}, expected an object "
+                           f"with 'format', 'version', 'task', 'num_episodes', 'horizon' and 'keys'")
+    if meta.get("format") != DATASET_FORMAT:
+        raise DatasetError(f"load_dataset: {meta_file} has format {meta.get('format')!r}, expected {DATASET_FORMAT!r}")
+    if meta.get("version") != DATASET_VERSION:
+        raise DatasetError(
+            f"load_dataset: {path} is version {meta.get('version')!r} of the format; this trakdis reads version "
+            f"{DATASET_VERSION}; recollect it with collect_expert_dataset"
+        )
+    for key in ("task", "num_episodes", "horizon", "keys"):
+        if key not in meta:
+            raise _meta_error(meta_file, key, "is missing")
+    if not isinstance(meta["task"], str):
+        raise _meta_error(meta_file, "task", f"must be a task name, got {meta['task']!r}")
+    for key in ("num_episodes", "horizon"):
+        value = meta[key]
+        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+            raise _meta_error(meta_file, key, f"must be an int >= 1, got {value!r}")
+    keys = meta["keys"]
+    if not isinstance(keys, dict):
+        raise _meta_error(meta_file, "keys", f"must map each per-step key to its shape and dtype, got {keys!r}")
+    for name, spec in keys.items():
+        where = f"keys.{name}"
+        if not _KEY_RE.fullmatch(name):
+            raise _meta_error(meta_file, where, "is not a plain key name")
+        if not isinstance(spec, dict) or "shape" not in spec or "dtype" not in spec:
+            raise _meta_error(meta_file, where, f"must be {{'shape': [...], 'dtype': ...}}, got {spec!r}")
+        shape = spec["shape"]
+        if not (isinstance(shape, list) and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
+            raise _meta_error(meta_file, where + ".shape", f"must be a list of ints >= 0, got {shape!r}")
+        if spec["dtype"] not in _DTYPES:
+            raise _meta_error(meta_file, where + ".dtype", f"must be one of {sorted(_DTYPES)}, got {spec['dtype']!r}")
+    if "config" in meta and not isinstance(meta["config"], dict):
+        raise _meta_error(meta_file, "config", f"must be an object, got {meta['config']!r}")
+    return meta
+
+
+def _open_readonly(file: Path, dtype: torch.dtype, shape: tuple[int, ...], what: str) -> torch.Tensor:
+    """Map ``file`` as a ``dtype`` tensor of ``shape``, read-only on disk (opened ``O_RDONLY``, mapped
+    private: writes to the tensor stay in memory), after checking that its size is exactly what
+    ``shape`` and ``dtype`` need."""
+    numel = math.prod(shape)
+    expected = numel * torch.empty((), dtype=dtype).element_size()
+    if not file.is_file():
+        raise DatasetError(f"load_dataset: {file} ({what}) is missing")
+    size = file.stat().st_size
+    if size != expected:
+        raise DatasetError(
+            f"load_dataset: {file} does not match meta.json: it holds {size} bytes, but {what} is "
+            f"{str(dtype).replace('torch.', '')} {list(shape)} = {expected} bytes "
+            f"(the file is {'truncated' if size < expected else 'too long'})"
+        )
+    if numel == 0:
+        return torch.empty(shape, dtype=dtype)
+    return torch.from_file(str(file), shared=False, size=numel, dtype=dtype).view(shape)
+
+
 def load_dataset(path: str | os.PathLike) -> tuple[TensorDict, dict]:
-    """Opens a dataset written by :func:`collect_expert_dataset`.
+    """Opens a dataset written by :func:`collect_expert_dataset`, read-only.
 
     Returns:
-        ``(steps, meta)``: ``steps`` is the memory-mapped TensorDict ``[num_episodes, horizon]``
-        (read lazily from disk); ``meta`` is ``meta.json`` plus ``meta["lengths"]``, an int64 tensor
+        ``(steps, meta)``: ``steps`` is a TensorDict ``[num_episodes, horizon]`` of tensors mapped
+        from the files (read lazily from disk; opened read-only and mapped copy-on-write, so writing
+        to them never changes the dataset); ``meta`` is ``meta.json`` plus ``meta["lengths"]``, an int64 tensor
         ``[num_episodes]`` of episode lengths (steps at or beyond an episode's length are zero).
 
     Raises:
         DatasetError: the path is missing, holds an unfinished collection, is not a trakdis dataset,
-            has another format version, or its data do not match ``meta.json``.
+            has another format version, a malformed ``meta.json``, or a data file whose size does not
+            match its shape and dtype in ``meta.json`` (each error names the file and the key).
     """
     path = Path(path)
     if not path.exists():
@@ -360,41 +497,29 @@ def load_dataset(path: str | os.PathLike) -> tuple[TensorDict, dict]:
             done = "?"
             try:
                 done = json.loads((part / "progress.json").read_text())["episodes_done"]
-            except (OSError, ValueError, KeyError):
+            except (OSError, ValueError, KeyError, TypeError):
                 pass
             raise DatasetError(
                 f"load_dataset: {path} does not exist, but {part} holds an unfinished collection "
                 f"({done} episodes written); rerun collect_expert_dataset with the same arguments to finish it"
             )
         raise DatasetError(f"load_dataset: no dataset at {path} (directory does not exist)")
-    meta_file = path / "meta.json"
-    if not meta_file.exists():
-        raise DatasetError(f"load_dataset: {path} has no meta.json: not a trakdis dataset, or an unfinished one")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except ValueError as err:
-        raise DatasetError(f"load_dataset: {meta_file} is not valid JSON ({err})") from err
-    if meta.get("format") != DATASET_FORMAT:
-        raise DatasetError(f"load_dataset: {meta_file} has format {meta.get('format')!r}, expected {DATASET_FORMAT!r}")
-    if meta.get("version") != DATASET_VERSION:
-        raise DatasetError(
-            f"load_dataset: {path} is version {meta.get('version')!r} of the format; this trakdis reads version "
-            f"{DATASET_VERSION}; recollect it with collect_expert_dataset"
-        )
-    try:
-        data = TensorDict.load_memmap(path / "data")
-    except Exception as err:  # noqa: BLE001 - any failure here means damaged data
-        raise DatasetError(f"load_dataset: cannot read the memory-mapped data in {path / 'data'} ({err})") from err
-    steps = data.get("steps", None)
-    lengths = data.get("length", None)
-    expected = (meta["num_episodes"], meta["horizon"])
-    if steps is None or lengths is None or tuple(steps.batch_size) != expected:
-        raise DatasetError(
-            f"load_dataset: {path / 'data'} does not match meta.json (expected steps {list(expected)} and lengths)"
-        )
-    missing = [k for k in REQUIRED_KEYS if k not in steps.keys()]
+    meta = read_meta(path)
+    missing = [k for k in REQUIRED_KEYS if k not in meta["keys"]]
     if missing:
         raise DatasetError(f"load_dataset: {path} lacks the per-step keys {missing}")
+    n, horizon = meta["num_episodes"], meta["horizon"]
+    data = path / "data"
+    # Files are read by the layout collect_expert_dataset writes (TensorDict.memmap: one raw file per
+    # tensor), sized from meta.json; TensorDict.load_memmap is not used here because it maps directory
+    # datasets read-write and extends a short file with zeros on disk.
+    steps = TensorDict(
+        {key: _open_readonly(data / "steps" / f"{key}.memmap", _DTYPES[spec["dtype"]], (n, horizon, *spec["shape"]),
+                             f"steps[{key!r}]")
+         for key, spec in meta["keys"].items()},
+        batch_size=[n, horizon],
+    )
+    lengths = _open_readonly(data / "length.memmap", torch.int64, (n,), "the episode lengths")
     meta = dict(meta)
     meta["lengths"] = lengths.clone()
     meta["path"] = str(path)

@@ -31,12 +31,30 @@ from trakdis.envs.specs import (  # noqa: E402
     task_spec,
 )
 
+#: Cloth grid resolutions that work for every configuration of every task. Measured (MuJoCo 4.0):
+#: at 31 the smallest cloths (0.24 m) overflow MuJoCo's 32 MB arena at the first step (ClothFold),
+#: and from 32 on their vertex spacing falls below the vertices' collision diameter (an XML error
+#: at reset); 30 ran full scripted-expert episodes on the smallest and largest cloths.
+MAX_RESOLUTION = 30
+MIN_RESOLUTION = 4
+
 WORKSPACE_LOW = np.array([-0.4, -0.4, 0.0])
 WORKSPACE_HIGH = np.array([0.4, 0.4, 0.3])
 # Physics is declared unstable above this vertex speed (m/s); the pickers move at <= 1 m/s.
 MAX_SPEED = 20.0
 _BAD_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS,
                  mujoco.mjtWarning.mjWARN_BADQVEL)
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_config_index(value, name: str) -> int:
+    """``value`` as an int in ``[0, CONFIG_POOL_SIZE)``; a float such as 3.7 is refused, not truncated."""
+    if not _is_int(value) or not 0 <= value < CONFIG_POOL_SIZE:
+        raise ValueError(f"{name} must be an int in [0, {CONFIG_POOL_SIZE}), got {value!r}")
+    return int(value)
 
 
 class ClothEnv(gym.Env):
@@ -58,6 +76,10 @@ class ClothEnv(gym.Env):
         render_supersample: render at ``image_size * k`` and area-downsample.
         config_index: pin every reset to one configuration of the pool (debugging); default
             draws it from the reset seed.
+
+    ``resolution`` must lie in ``[4, 30]`` (:data:`MAX_RESOLUTION`: finer grids fail in MuJoCo on
+    the smallest cloths); ``move_per_substep`` and ``grasp_radius`` must be finite and > 0 and
+    ``config_index`` an int in the pool: anything else is a ``ValueError`` at construction.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 12}
@@ -91,8 +113,15 @@ class ClothEnv(gym.Env):
             raise ValueError(f"horizon must be a positive int, got {horizon!r}")
         if not (isinstance(action_repeat, int) and action_repeat >= 1):
             raise ValueError(f"action_repeat must be a positive int, got {action_repeat!r}")
-        if config_index is not None and not 0 <= config_index < CONFIG_POOL_SIZE:
-            raise ValueError(f"config_index must be in [0, {CONFIG_POOL_SIZE}), got {config_index}")
+        if config_index is not None:
+            config_index = _check_config_index(config_index, "config_index")
+        if not (_is_int(resolution) and MIN_RESOLUTION <= resolution <= MAX_RESOLUTION):
+            raise ValueError(
+                f"resolution must be an int in [{MIN_RESOLUTION}, {MAX_RESOLUTION}], got {resolution!r} (finer grids "
+                f"fail in MuJoCo on the smallest cloths: vertex spacing below the collision size, or out of memory)")
+        for name, value in (("move_per_substep", move_per_substep), ("grasp_radius", grasp_radius)):
+            if not (isinstance(value, (int, float, np.floating, np.integer)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         self.task_spec = task_spec(task, horizon=horizon)
         self.num_pickers = self.task_spec.num_pickers
         self.horizon = horizon
@@ -193,7 +222,7 @@ class ClothEnv(gym.Env):
         if unknown:
             raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected config_index, config, picker_pos")
         if "config_index" in options:
-            index = int(options["config_index"])
+            index = _check_config_index(options["config_index"], "reset option config_index")
         elif self.fixed_config_index is not None:
             index = self.fixed_config_index
         else:
@@ -205,6 +234,8 @@ class ClothEnv(gym.Env):
             pickers = [tuple(float(v) for v in p) for p in options["picker_pos"]]
             if len(pickers) != self.num_pickers or any(len(p) != 3 for p in pickers):
                 raise ValueError(f"picker_pos must be {self.num_pickers} xyz triple(s), got {options['picker_pos']}")
+            if not np.isfinite(pickers).all():  # NaN would leave the env with sim_unstable=False
+                raise ValueError(f"reset option picker_pos must be finite, got {options['picker_pos']}")
         self.picker_pos0 = pickers
         render_size = self._renderer.render_size if self._renderer is not None else 64
         xml = build_mjcf(self.task, self.config, self.physics, pickers, render_size)

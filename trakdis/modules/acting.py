@@ -30,7 +30,10 @@ class DTActingPolicy(TensorDictModuleBase):
     ``TanhNormal`` according to the current ``ExplorationType`` (``DETERMINISTIC``: ``tanh(loc)``;
     ``RANDOM``: a sample; default: the actor's default, deterministic). ``*B`` may be empty (an
     unbatched env), ``[1]`` or any shape; a change of batch shape re-allocates (and clears) the
-    context. Call under ``actor.eval()`` to disable dropout.
+    context. Call under ``actor.eval()`` to disable dropout. Inputs are cast to the actor's dtype
+    (float64 observations work); an empty batch, or a NaN/inf observation or return-to-go (which
+    would make the env's actions NaN until its next reset), is a ``ValueError`` naming the key,
+    raised before the context changes.
 
     Args:
         actor: an actor from :func:`~trakdis.modules.make_dt_actor` (or any module containing one
@@ -122,6 +125,13 @@ class DTActingPolicy(TensorDictModuleBase):
         n = 1
         for s in batch:
             n *= s
+        if n == 0:
+            raise ValueError(f"DTActingPolicy: empty batch: {self.observation_key!r} has shape {tuple(obs.shape)}")
+        for name, x in ((self.observation_key, obs), (self.return_to_go_key, rtg)):
+            if x.is_floating_point() and not bool(torch.isfinite(x).all()):
+                bad = (~torch.isfinite(x)).reshape(n, -1).any(-1).nonzero().flatten().tolist()
+                raise ValueError(f"DTActingPolicy: {name!r} holds NaN or inf values (envs {bad} of batch {batch}); "
+                                 f"refused, since it would stay in the acting context until the next reset")
         # run on the actor's device/dtype (e.g. CPU envs with a GPU policy); the action goes back
         # to the device of the input observation
         param = self.dt.head_loc.weight

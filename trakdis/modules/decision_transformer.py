@@ -114,6 +114,8 @@ class DecisionTransformer(nn.Module):
     int64, mask [B, K] bool or None) -> [B, K, embed_dim]``. Extra leading batch dims are
     flattened and restored. Padded steps (``mask == False``) are zeroed before embedding and
     masked out of attention, so their content never changes the outputs at real steps.
+    Floating-point inputs of another dtype (e.g. float64 states) are cast to the model's dtype;
+    an empty batch or window, or a non-floating observation/action/return, is a clear error.
     """
 
     def __init__(self, config: DTConfig):
@@ -150,6 +152,13 @@ class DecisionTransformer(nn.Module):
                     f"DecisionTransformer: {name!r} has shape {tuple(tensor.shape)}, expected {tuple(shape)} "
                     f"(state_dim={c.state_dim}, action_dim={c.action_dim})"
                 )
+        if 0 in tuple(lead):
+            raise ValueError(
+                f"DecisionTransformer: empty input: 'observation' has shape {tuple(observation.shape)}; at least one "
+                f"window of at least one step is needed")
+        for name in ("observation", "action", "return_to_go"):
+            if not expected[name][0].dtype.is_floating_point:
+                raise TypeError(f"DecisionTransformer: {name!r} must be a floating-point tensor, got {expected[name][0].dtype}")
         if timestep.dtype.is_floating_point:
             raise TypeError(f"DecisionTransformer: 'timestep' must be an integer tensor, got {timestep.dtype}")
         if mask is not None and mask.dtype != torch.bool:
@@ -182,6 +191,8 @@ class DecisionTransformer(nn.Module):
         mask: torch.Tensor | None = None,
     ) -> torch.Tensor:
         self._check(observation, action, return_to_go, timestep, mask)
+        dtype = self.embed_state.weight.dtype  # e.g. float64 data into a float32 model
+        observation, action, return_to_go = observation.to(dtype), action.to(dtype), return_to_go.to(dtype)
         lead = observation.shape[:-2]
         k = observation.shape[-2]
         observation = observation.reshape(-1, k, observation.shape[-1])

@@ -8,11 +8,18 @@ leaves either the previous complete checkpoint or the new complete one, never a 
 :func:`capture_state` / :func:`restore_state` turn a dict of objects with ``state_dict`` /
 ``load_state_dict`` (modules, optimizers, replay buffers, ...) plus the Python, NumPy and torch
 RNG states and plain counters into one checkpoint dict and back.
+
+Every file is read with ``torch.load(weights_only=True)``: PyTorch's restricted unpickler builds
+tensors, containers and numbers only, so a crafted file cannot run code while it is loaded
+(docs/security.md). Checkpoints therefore hold only such types: :func:`rng_state` stores the NumPy
+RNG state as a plain dict with a tensor key. Resume checkpoints written before that (NumPy arrays
+inside) load with ``numpy_arrays=True``, which allow-lists NumPy's array types, nothing else.
 """
 from __future__ import annotations
 
 import io
 import os
+import pickle
 import random
 import tempfile
 from pathlib import Path
@@ -82,24 +89,43 @@ def save_checkpoint(path: str | Path, state: Mapping[str, Any]) -> Path:
     return atomic_write_bytes(path, buffer.getvalue())
 
 
+def _numpy_array_globals() -> list:
+    """NumPy's array-reconstruction globals: what a pickled ``np.ndarray`` (the NumPy RNG state
+    of checkpoints written before :func:`rng_state` stored plain types) needs, and nothing else."""
+    core = getattr(np, "_core", None) or np.core
+    return [core.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
+
+
 def load_checkpoint(
     path: str | Path,
     *,
     required: Iterable[str] = (),
     map_location: str | torch.device | None = "cpu",
+    numpy_arrays: bool = False,
 ) -> dict[str, Any]:
     """Load a checkpoint written by :func:`save_checkpoint`.
 
-    Raises :class:`CheckpointError` naming the file when it is missing, unreadable, not a
-    trakdis checkpoint, or lacks one of the ``required`` keys.
+    The file is read with ``torch.load(weights_only=True)`` (tensors, containers, numbers and
+    strings only): a file holding anything else, e.g. an object whose unpickling would run code,
+    is refused before any of it runs. ``numpy_arrays=True`` also allows NumPy arrays (resume
+    checkpoints written by earlier versions hold the NumPy RNG state as one).
+
+    Raises :class:`CheckpointError` naming the file when it is missing, unreadable, holds types
+    the safe loader refuses, is not a trakdis checkpoint, or lacks one of the ``required`` keys.
     """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        # weights_only=False: checkpoints hold optimizer/buffer states and RNG states (numpy
-        # arrays, tuples) that the restricted unpickler rejects. Only load files you wrote.
-        state = torch.load(path, map_location=map_location, weights_only=False)
+        with torch.serialization.safe_globals(_numpy_array_globals() if numpy_arrays else []):
+            state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:
+        lines = str(err).strip().splitlines() or [""]
+        detail = next((line for line in lines if "GLOBAL" in line), lines[-1]).split(" Please use")[0].strip()
+        raise CheckpointError(
+            f"checkpoint {path} was refused: it holds objects other than tensors, containers and numbers, "
+            f"which trakdis never loads from a file (torch.load(weights_only=True); docs/security.md). {detail}"
+        ) from err
     except Exception as err:
         raise CheckpointError(f"checkpoint {path} could not be read ({type(err).__name__}: {err})") from err
     if not isinstance(state, dict) or state.get("format") != _FORMAT:
@@ -112,10 +138,13 @@ def load_checkpoint(
 
 # --------------------------------------------------------------------------- RNG
 def rng_state() -> dict[str, Any]:
-    """Python, NumPy and torch (CPU and, if initialised, CUDA) RNG states."""
+    """Python, NumPy and torch (CPU and, if initialised, CUDA) RNG states, as types that
+    ``torch.load(weights_only=True)`` reads (the NumPy state: a dict with a tensor key)."""
+    np_state = np.random.get_state(legacy=False)
+    np_state["state"] = {**np_state["state"], "key": torch.from_numpy(np_state["state"]["key"].astype(np.int64))}
     state = {
         "python": random.getstate(),
-        "numpy": np.random.get_state(),
+        "numpy": np_state,
         "torch": torch.get_rng_state(),
     }
     if torch.cuda.is_available() and torch.cuda.is_initialized():
@@ -125,7 +154,11 @@ def rng_state() -> dict[str, Any]:
 
 def set_rng_state(state: Mapping[str, Any]) -> None:
     random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
+    np_state = state["numpy"]
+    if isinstance(np_state, Mapping):  # rng_state()'s form; older checkpoints hold NumPy's tuple
+        key = np.asarray(np_state["state"]["key"], dtype=np.int64).astype(np.uint32)
+        np_state = {**np_state, "state": {**np_state["state"], "key": key}}
+    np.random.set_state(np_state)
     torch.set_rng_state(state["torch"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])

@@ -6,7 +6,6 @@ automatically (an interrupted collection resumes when the same command runs agai
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -46,15 +45,26 @@ def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bo
 
 def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixels: bool, image_size: int = 32,
                    log: Callable[..., None] = print, progress: bool = True) -> Path:
-    """The dataset directory; collected first (resuming an interrupted collection) if missing."""
-    from trakdis.data import collect_expert_dataset, partial_path
+    """The dataset directory; collected first (resuming an interrupted collection) if missing.
+
+    An existing dataset must hold episodes of ``task`` with ``horizon`` steps (its ``meta.json``):
+    anything else is a :class:`~trakdis.data.DatasetError` naming the path and both values."""
+    from trakdis.data import collect_expert_dataset, partial_path, read_meta
 
     from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
 
+    if horizon < 1:
+        raise ValueError(f"--horizon {horizon}: the episode length must be >= 1")
     path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels, image_size=image_size)
     if (path / "meta.json").exists():
+        meta = read_meta(path)
+        where = "--data.path" if cfg.path else "the default dataset path"
+        if meta["task"] != task or meta["horizon"] != horizon:
+            raise DatasetError(
+                f"dataset {path} ({where}) holds task {meta['task']} with horizon {meta['horizon']}, but this run "
+                f"asks for --task {task} --horizon {horizon}; pass a dataset of that task and horizon (or none, "
+                f"to collect one)")
         if not cfg.path:  # a default dataset must come from the current scripted expert
-            meta = json.loads((path / "meta.json").read_text())
             found = meta.get("config", {}).get("expert_version", 1)
             if found != EXPERT_VERSION:
                 raise DatasetError(

@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import numbers
+import os
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -18,7 +19,7 @@ import pandas as pd
 
 from .checkpoint import atomic_write_bytes
 
-__all__ = ["make_run_dir", "latest_run_dir", "CSVLogger"]
+__all__ = ["check_run_name", "make_run_dir", "latest_run_dir", "CSVLogger"]
 
 
 def latest_run_dir(root: str | Path, recipe: str) -> Path | None:
@@ -28,6 +29,21 @@ def latest_run_dir(root: str | Path, recipe: str) -> Path | None:
         return None
     runs = [p for p in base.iterdir() if p.is_dir() and (p / "config.json").exists()]
     return max(runs, key=lambda p: p.stat().st_mtime) if runs else None
+
+
+def check_run_name(name: str) -> str:
+    """``name`` if it is a plain directory name; a ``ValueError`` naming ``--name`` otherwise (a path
+    separator, ``.``, ``..``, an absolute path or an empty name would put the run outside
+    ``<root>/<recipe>/`` or on top of it)."""
+    seps = [s for s in (os.sep, os.altsep, "/") if s]
+    if (not isinstance(name, str) or name in ("", ".", "..") or any(s in name for s in seps) or "\0" in name
+            or Path(name).is_absolute()):
+        raise ValueError(
+            f"--name {name!r} is not a plain run name: the run directory is <root>/<recipe>/<name>, so a name "
+            f"must not be empty, '.' or '..', an absolute path, or contain a path separator "
+            f"(choose the parent directory with --root)"
+        )
+    return name
 
 
 def make_run_dir(
@@ -41,8 +57,11 @@ def make_run_dir(
 
     ``name`` defaults to a UTC timestamp; with ``resume`` and no name, the latest run of the
     recipe is resumed. A fresh run refuses to reuse a directory that already holds a
-    checkpoint or a log, so nothing is overwritten by accident.
+    checkpoint or a log, so nothing is overwritten by accident. ``name`` must be a plain
+    directory name (see :func:`check_run_name`): a run never leaves ``<root>/<recipe>/``.
     """
+    if name is not None:
+        check_run_name(name)
     root = Path(root)
     if resume:
         if name is None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -44,18 +45,35 @@ __all__ = [
 
 # --------------------------------------------------------------------------- environments
 def close_env(env) -> None:
-    """``env.close()`` without TorchRL's side effect on the thread count.
+    """``env.close()`` without TorchRL's side effect on the thread count, safe in a ``finally``.
 
     TorchRL 0.14's ``BatchedEnvBase.close`` (``SerialEnv``/``ParallelEnv``) raises torch's intra-op
     thread count to ``min(initial, current + num_workers)``, even for a ``SerialEnv`` that never
     lowered it. Measured here: with 1 thread requested and a 2-env ``SerialEnv`` closed, the next
     DT updates ran ~10x slower on a loaded 2-core machine (OpenMP threads spinning in libgomp).
+
+    Closing never hides the error that led to it: an env that is already closed, or never started
+    (TorchRL starts batched envs at their first reset, and ``close()`` on one raises "trying to
+    close a closed environment"), is skipped; and when ``close()`` fails while another exception is
+    propagating (``close_env`` in a ``finally``), its failure is only warned about, so the original
+    exception, Ctrl-C included, is the one raised.
     """
+    import sys
+    import warnings
+
     import torch
 
+    if getattr(env, "is_closed", False):
+        return
+    in_flight = sys.exc_info()[1]
     threads = torch.get_num_threads()
     try:
         env.close()
+    except Exception as err:
+        if in_flight is None:
+            raise
+        warnings.warn(f"close_env: closing {type(env).__name__} failed ({type(err).__name__}: {err}) while "
+                      f"{type(in_flight).__name__} was being raised; raising that one", RuntimeWarning, stacklevel=2)
     finally:
         torch.set_num_threads(threads)
 
@@ -100,6 +118,8 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
 
     from trakdis.transforms import EncoderTransform, ImageResize, ReturnToGo, StateNoise
 
+    if not (math.isfinite(state_noise) and state_noise >= 0):  # -1 or nan were skipped silently
+        raise ValueError(f"state_noise must be a finite std >= 0, got {state_noise!r}")
     agent_key = "pixels"
     transforms = []
     if video_size is not None:
@@ -332,10 +352,12 @@ class PolicyHandle:
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
                 expert_noise: float = 0.0, device: str = "cpu") -> PolicyHandle:
     """``"expert"`` or the path of a policy file (or of a run directory holding ``policy.pt``)."""
+    if horizon is not None and horizon < 1:  # 0 used to mean "the policy's own"
+        raise ValueError(f"horizon must be >= 1 (None: the policy's own), got {horizon}")
     if str(spec) == "expert":
         if task is None:
             raise ValueError("the expert policy needs --task")
-        return PolicyHandle("expert", task, horizon or 100, expert_noise=expert_noise, source="expert")
+        return PolicyHandle("expert", task, 100 if horizon is None else horizon, expert_noise=expert_noise, source="expert")
     path = Path(spec)
     if path.is_dir():
         path = path / "policy.pt"
@@ -355,7 +377,7 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
     if data["kind"] == "student" and encoder is None:
         raise CheckpointError(f"{path}: a student policy file must contain its encoder")
     return PolicyHandle(
-        data["kind"], data["task"], horizon or data["horizon"], actor=actor.eval(), encoder=encoder,
+        data["kind"], data["task"], data["horizon"] if horizon is None else horizon, actor=actor.eval(), encoder=encoder,
         observation_key=data["observation_key"], target_return=data["target_return"],
         rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
         normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,

@@ -100,7 +100,11 @@ class Run:
         cfg, explicit = parse_config(cfg_cls, argv, presets=presets, description=description)
         directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=cfg.resume)
         saved = directory / "config.json"
-        if cfg.resume and saved.exists():
+        if cfg.resume:
+            if not saved.is_file():  # resuming on the defaults would silently run another configuration
+                raise FileNotFoundError(
+                    f"--resume: {saved} is missing, so the configuration of run {directory} is unknown; restore "
+                    f"the file, or start a new run without --resume")
             # --stop-after belongs to one invocation: a resumed run never inherits it.
             cfg = apply_overrides(load_config(cfg_cls, saved), {"stop_after": None, **explicit})
         cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
@@ -114,7 +118,9 @@ class Run:
         seed_everything(cfg.seed)
         if run.resuming:
             if run.checkpoint_path.exists():
-                run._resume_state = load_checkpoint(run.checkpoint_path, map_location="cpu")
+                # One's own file, yet read like any other (weights_only); NumPy arrays are allowed
+                # for checkpoints written before the RNG state was stored as plain types.
+                run._resume_state = load_checkpoint(run.checkpoint_path, map_location="cpu", numpy_arrays=True)
                 run.print(f"resuming {directory} from step {run._resume_state.get('step', 0)}")
             else:
                 run.print(f"--resume: {run.checkpoint_path} does not exist yet; starting {directory} afresh")
