@@ -4,13 +4,13 @@ import json
 import pytest
 
 from trakdis.data import DatasetError
-from trakdis.envs import EXPERT_VERSION
+from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
 from trakdis.utils.datasets import DataConfig, default_dataset_path, ensure_dataset
 
 
-def _fake_dataset(path, expert_version, task="ClothFold", horizon=100):
+def _fake_dataset(path, expert_version, task="ClothFold", horizon=100, render_version=RENDER_VERSION):
     path.mkdir(parents=True)
-    config = {"task": task}
+    config = {"task": task, "render_version": render_version}
     if expert_version is not None:
         config["expert_version"] = expert_version
     (path / "meta.json").write_text(json.dumps({"format": "trakdis-dataset", "version": 1, "task": task,
@@ -67,3 +67,12 @@ def test_horizon_below_one_is_refused(tmp_path):
     with pytest.raises(ValueError, match="--horizon 0"):
         ensure_dataset(DataConfig(root=str(tmp_path)), task="ClothFold", horizon=0, seed=0, pixels=True)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("found", [None, RENDER_VERSION - 1])
+def test_default_pixel_dataset_of_an_older_rendering_is_refused(tmp_path, found):
+    cfg = DataConfig(root=str(tmp_path), episodes=3)
+    path = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
+    _fake_dataset(path, EXPERT_VERSION, render_version=found)
+    with pytest.raises(DatasetError, match="rendering version"):
+        ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True)

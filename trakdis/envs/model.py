@@ -55,8 +55,8 @@ class PhysicsOptions:
     thickness: float = 1e-3
 
     def __post_init__(self):
-        if not (isinstance(self.resolution, int) and 4 <= self.resolution <= 40):
-            raise ValueError(f"resolution must be an int in [4, 40], got {self.resolution!r}")
+        if not (isinstance(self.resolution, int) and 4 <= self.resolution <= 30):
+            raise ValueError(f"resolution must be an int in [4, 30] (finer grids fail in MuJoCo, docs/tasks.md), got {self.resolution!r}")
         if not 0 < self.timestep <= 0.02:
             raise ValueError(f"timestep must be in (0, 0.02] s, got {self.timestep!r}")
         if not (isinstance(self.substeps, int) and self.substeps >= 1):
