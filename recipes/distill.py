@@ -76,6 +76,10 @@ class DistillConfig(OptimConfig, RunConfig):
     loss_function: Literal["nll", "mse"] = "nll"
     """distillation loss: the student's NLL of the teacher's action (the paper), or the squared
     error of the two mean actions (see DistillationLoss)"""
+    return_to_go: Literal["acting", "hindsight"] = "acting"
+    """return-to-go of the distillation windows, read by teacher and student alike: the countdown
+    the acting policy was conditioned on in the rollout, or the hindsight return the rollout reached
+    (relabelled at sampling time, as in DT training)"""
     kl_coef: float = 0.0
     """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
     buffer_capacity: int = 200
@@ -165,7 +169,8 @@ def main(argv=None) -> dict:
         return td
 
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
-                         transform=transform, early_windows=cfg.early_windows)
+                         transform=transform, early_windows=cfg.early_windows,
+                         relabel_return_to_go=not cfg.distill or cfg.return_to_go == "hindsight")
     counters = {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}
 
     state = run.resume_state()
@@ -237,7 +242,7 @@ def main(argv=None) -> dict:
                                    deterministic=True, keep_episodes=True, desc="rollout",
                                    seed=cfg.seed + 1000 * (counters["rounds"] + 1))
                 for ep in res.episodes:
-                    buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action")))
+                    buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action", "return_to_go")))
                 rollout_metrics = {"rollout/normalized_performance": float(res.final_performance.mean())}
             else:
                 rollout_metrics = {}

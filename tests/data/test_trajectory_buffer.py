@@ -218,3 +218,22 @@ def test_lowest_return_replacement_keeps_the_best(tmp_path):
         TrajectoryReplayBuffer(capacity=3, context_len=2, max_len=4, replacement="fifo")
     with pytest.raises(ValueError, match="replacement"):
         TrajectoryReplayBuffer(capacity=3, context_len=2, max_len=4).load_state_dict(rb.state_dict())
+
+
+def test_stored_return_to_go_is_returned_unchanged():
+    """relabel_return_to_go=False: windows carry the return-to-go stored with each step (the acting
+    countdown), not the hindsight return from the rewards."""
+    data, lengths = _trajs([-3.0, -1.0], T=4, lengths=[4, 3])
+    acting = torch.tensor([[9.0, 8.0, 7.0, 6.0], [5.0, 4.0, 3.0, 0.0]]).unsqueeze(-1)
+    data.set("return_to_go", acting)
+    rb = TrajectoryReplayBuffer(capacity=2, context_len=2, max_len=4, rtg_scale=0.5, seed=0, relabel_return_to_go=False)
+    assert "return_to_go" in rb.keys
+    rb.load_offline(data, lengths)
+    batch = rb.sample(64)
+    m = batch["mask"]
+    ids, t = batch["state"][..., 0].long(), batch["state"][..., 1].long()
+    torch.testing.assert_close(batch["return_to_go"][m].squeeze(-1), acting[ids, t].squeeze(-1)[m])
+    assert (batch["return_to_go"][~m] == 0).all()
+    hindsight = TrajectoryReplayBuffer(capacity=2, context_len=2, max_len=4, rtg_scale=0.5, seed=0)
+    hindsight.load_offline(data.exclude("return_to_go"), lengths)
+    assert not torch.equal(hindsight.sample(64)["return_to_go"], batch["return_to_go"])

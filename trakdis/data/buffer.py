@@ -239,6 +239,11 @@ class TrajectoryReplayBuffer:
         early_windows: also sample windows that begin before a trajectory's first step, so the
             first ``K - 1`` steps are trained as often as the others (see :class:`WindowSampler`;
             ``False`` is the DT/ODT reference sampling).
+        relabel_return_to_go: recompute ``"return_to_go"`` from the stored rewards at sampling time
+            (hindsight, DT/ODT training). ``False``: store ``"return_to_go"`` with the trajectory
+            (the countdown the acting policy was conditioned on) and return it unchanged; for
+            distillation, where the teacher must label what the student did under the return it
+            was asked for, not under the (poor) return its rollout reached.
         replacement: which stored trajectory a new one replaces once the buffer is full:
             ``"oldest"`` (Online DT: the lowest-return offline ones first, then first-in first-out)
             or ``"lowest_return"`` (the lowest-return one, offline or online, and only if the new
@@ -264,6 +269,7 @@ class TrajectoryReplayBuffer:
         transform=None,
         early_windows: bool = False,
         replacement: str = "oldest",
+        relabel_return_to_go: bool = True,
     ):
         if capacity < 1 or max_len < 1:
             raise ValueError(f"TrajectoryReplayBuffer: capacity ({capacity}) and max_len ({max_len}) must be >= 1")
@@ -273,6 +279,9 @@ class TrajectoryReplayBuffer:
         self.keys = [k for k in keys]
         if "reward" in self.keys:
             self.keys.remove("reward")
+        self.relabel_return_to_go = bool(relabel_return_to_go)
+        if not self.relabel_return_to_go and "return_to_go" not in self.keys:
+            self.keys.append("return_to_go")
         self.reward_key = reward_key
         self.rtg_scale = float(rtg_scale)
         self.device = None if device is None else torch.device(device)
@@ -417,12 +426,13 @@ class TrajectoryReplayBuffer:
         # hindsight return-to-go from the stored rewards of the sampled trajectories: O(B * max_len)
         # (TorchRL storages have no public accessor for one field of the stored TensorDict, and
         # storage.get(traj) would also gather every other key, pixels included, for whole trajectories)
-        rewards = self.storage._storage.get("reward")[traj]  # [B, max_len, 1]
-        valid = torch.arange(self.max_len).unsqueeze(0) < self.sampler.lengths[traj].unsqueeze(1)
-        rtg = hindsight_return_to_go(rewards, valid, rtg_scale=self.rtg_scale)
-        rtg = rtg.gather(1, steps.unsqueeze(-1))
         data = data.apply(lambda x: torch.where(mask.view(B, K, *([1] * (x.ndim - 2))), x, torch.zeros((), dtype=x.dtype)))
-        data.set("return_to_go", torch.where(mask.unsqueeze(-1), rtg, torch.zeros(())))
+        if self.relabel_return_to_go:
+            rewards = self.storage._storage.get("reward")[traj]  # [B, max_len, 1]
+            valid = torch.arange(self.max_len).unsqueeze(0) < self.sampler.lengths[traj].unsqueeze(1)
+            rtg = hindsight_return_to_go(rewards, valid, rtg_scale=self.rtg_scale)
+            rtg = rtg.gather(1, steps.unsqueeze(-1))
+            data.set("return_to_go", torch.where(mask.unsqueeze(-1), rtg, torch.zeros(())))
         data.set("timestep", torch.where(mask, steps, torch.zeros((), dtype=steps.dtype)))
         data.set("mask", mask)
         if self.device is not None:

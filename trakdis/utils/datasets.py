@@ -106,11 +106,13 @@ def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tu
 
 
 def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float, keys: Sequence[str],
-                seed: int | None = None, transform=None, early_windows: bool = False, replacement: str = "oldest"):
+                seed: int | None = None, transform=None, early_windows: bool = False, replacement: str = "oldest",
+                relabel_return_to_go: bool = True):
     """A :class:`~trakdis.data.TrajectoryReplayBuffer` storing ``keys`` (+ ``"action"``, reward);
     ``transform`` is applied to sampled windows (e.g. a :class:`~trakdis.utils.policies.StateNormalizer`)."""
     from trakdis.data import TrajectoryReplayBuffer
 
     keys = list(dict.fromkeys([*keys, "action"]))
     return TrajectoryReplayBuffer(capacity, context_len, max_len, keys=keys, rtg_scale=rtg_scale, seed=seed,
-                                  transform=transform, early_windows=early_windows, replacement=replacement)
+                                  transform=transform, early_windows=early_windows, replacement=replacement,
+                                  relabel_return_to_go=relabel_return_to_go)
