@@ -9,12 +9,13 @@
 1. The student has the teacher's architecture and starts as a copy of its weights
    (``--no-weight-copy``: fresh weights); it reads ``"state_estimate"`` = encoder(pixels).
    Teacher and encoder are frozen.
-2. Each round, ``--episodes-per-round`` episodes are rolled out (by the student by default,
-   DAgger-style, or by the teacher with ``--act teacher``) on the train split; every step keeps
+2. Each round, ``--episodes-per-round`` episodes are rolled out (by the teacher by default, or
+   by the student, DAgger-style, with ``--act student``) on the train split; every step keeps
    both the true state and the encoder's estimate, so teacher and student see the same episodes.
-3. ``--updates-per-round`` updates of the distillation loss: the student's negative
-   log-likelihood of the teacher's (deterministic) action on the same windows, the teacher
-   reading the true state. ``--no-distill`` replaces the teacher's labels with the expert
+3. ``--updates-per-round`` updates of the distillation loss on the same windows, the teacher
+   reading the true state: the squared error between the two mean actions (``--loss-function
+   mse``, default) or the student's negative log-likelihood of the teacher's action (``nll``,
+   the paper's). ``--no-distill`` replaces the teacher's labels with the expert
    dataset's actions (student DT on encoder(images) of the expert data, loss = DT NLL).
 4. Evaluation on the eval split (mean action) before training, every ``--eval-every`` rounds and
    at the end; the teacher is evaluated on the same episodes for reference.
@@ -59,8 +60,9 @@ class DistillConfig(OptimConfig, RunConfig):
     proprio_pickers: bool = False
     """take the picker positions of the student's state from proprioception (the true state)
     instead of the encoder (a deviation from the paper's image-only student)"""
-    act: Literal["student", "teacher"] = "student"
-    """who acts in the training rollouts"""
+    act: Literal["student", "teacher"] = "teacher"
+    """who acts in the training rollouts: the teacher (its labels are its own actions, on its own
+    history), or the student (DAgger; measured to collapse the student, docs/recipes/distill.md)"""
     rounds: int = 10
     """rounds of (roll out, update); --no-distill: rounds of updates only"""
     episodes_per_round: int = 2
@@ -73,7 +75,7 @@ class DistillConfig(OptimConfig, RunConfig):
     """learning rate"""
     warmup_steps: int = 20
     """linear learning-rate warm-up (updates)"""
-    loss_function: Literal["nll", "mse"] = "nll"
+    loss_function: Literal["nll", "mse"] = "mse"
     """distillation loss: the student's NLL of the teacher's action (the paper), or the squared
     error of the two mean actions (see DistillationLoss)"""
     return_to_go: Literal["acting", "hindsight"] = "acting"

@@ -64,6 +64,10 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """lower bound (metres) of the state normaliser's per-dimension scale: about one pixel of the
     32x32 camera at the cloth, so a near-constant coordinate (a corner's height) is not magnified into
     many standard units by an error the student's image encoder cannot avoid (docs/recipes/distill.md)"""
+    state_noise: float = 0.0
+    """std (metres) of Gaussian noise added to the states of every training window (the acting
+    state stays exact): a teacher that has seen imprecise states can be copied into a student that
+    reads an image encoder's estimates (docs/recipes/distill.md)"""
     rtg_scale: float = 1.0
     """return-to-go scale (rewards and targets are multiplied by it)"""
     buffer_capacity: Optional[int] = None
@@ -183,8 +187,16 @@ def main(argv=None) -> dict:
             counters["buffer_capacity"] = int(trajectories.shape[0])
     # The DT reads standardised states (buffer windows and acting); data and envs stay raw.
     normalizer = StateNormalizer.from_state_dict(counters["normalizer"])
+    transform = normalizer
+    if cfg.state_noise > 0:  # in state units, before standardisation
+        from trakdis.transforms import StateNoise
+
+        noise = StateNoise(cfg.state_noise, in_keys=["state"], seed=cfg.seed + 7919)
+
+        def transform(td):
+            return normalizer(noise(td))
     buffer = make_buffer(counters["buffer_capacity"], cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
-                         seed=cfg.seed, transform=normalizer, early_windows=cfg.early_windows,
+                         seed=cfg.seed, transform=transform, early_windows=cfg.early_windows,
                          replacement=cfg.buffer_replacement)
     if state is not None:
         updater.load_state_dict(state["updater"])
