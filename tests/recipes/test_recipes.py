@@ -188,3 +188,22 @@ def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatc
     with pytest.raises(ValueError, match=message):
         load_recipe(recipe).main(["--name", "bad", "--task", "ClothFold", *args])
     assert list(tmp_path.iterdir()) == []
+
+
+def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
+    """recipes/pipeline.py: teacher, encoder, student and the three evaluations, then one table;
+    a second call finds every stage's output and only rebuilds the table."""
+    teacher = " ".join(map(str, online_dt_args("unused")[2:]))
+    encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
+                                 "--channels", 4, 4, 4, 4, "--hidden-dim", 16]))
+    student = "--rounds 1 --updates-per-round 2 --episodes-per-round 2 --eval-episodes 2 --batch-size 8 --loss-function mse"
+    args = ["--name", "pipe", "--trials", 2, "--teacher-args", teacher, "--encoder-args", encoder,
+            "--student-args", student, "--threads", 1]
+    run_recipe(workdir, "pipeline", *args, timeout=400)
+    table = pd.read_csv(workdir / "runs" / "pipeline" / "pipe" / "summary.csv")
+    assert table["policy"].tolist() == ["expert", "teacher", "student"]
+    assert (table["n"] == 2).all() and table.loc[1, "x_teacher"] == pytest.approx(1.0)
+    assert "| student |" in (workdir / "runs" / "pipeline" / "pipe" / "summary.md").read_text()
+    assert (workdir / "runs" / "distill" / "pipe-student" / "policy.pt").exists()
+    again = run_recipe(workdir, "pipeline", "--resume", "--name", "pipe")
+    assert again.stdout.count("skipped") == 6

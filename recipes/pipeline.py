@@ -1,0 +1,115 @@
+"""The whole TraKDis method on one task, in one command: teacher -> encoder -> student -> table.
+
+    python recipes/pipeline.py                                   # ClothFold, default sizes
+    python recipes/pipeline.py --task ClothFoldDiagonalUnpinned --name unpinned
+    python recipes/pipeline.py --name cf --resume                # continue after a kill
+
+1. ``recipes/online_dt.py``: the expert dataset and the privileged teacher (offline + online).
+2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images.
+3. ``recipes/distill.py``: the image-only student (weight copy, distillation).
+4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
+   ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
+   25/50/75th percentiles and the ratio to the teacher.
+
+Each stage is an ordinary run of its recipe under ``<root>/<recipe>/<name>-<stage>``; a stage whose
+output file exists is skipped and an interrupted one is resumed, so ``--resume`` continues the
+pipeline. Extra options go to one stage with ``--teacher-args "..."``, ``--encoder-args "..."``,
+``--student-args "..."``. Writes ``<root>/pipeline/<name>/summary.md`` and ``summary.csv``.
+"""
+from __future__ import annotations
+
+import importlib.util
+import shlex
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from trakdis.envs.specs import TaskName
+from trakdis.utils.evaluation import write_summary_table
+from trakdis.utils.policies import load_policy
+from trakdis.utils.run import Run, RunConfig
+
+RECIPES = Path(__file__).resolve().parent
+
+
+@dataclass
+class PipelineConfig(RunConfig):
+    """The whole method on one task: teacher, encoder, student, and one evaluation table."""
+
+    task: TaskName = "ClothFold"
+    """cloth task"""
+    trials: int = 100
+    """evaluation episodes per policy (eval split, the same configurations for all three)"""
+    teacher_args: str = ""
+    """extra options for recipes/online_dt.py"""
+    encoder_args: str = ""
+    """extra options for recipes/train_encoder.py"""
+    student_args: str = ""
+    """extra options for recipes/distill.py"""
+
+
+def recipe(name: str):
+    """Import ``recipes/<name>.py`` as a module (the recipes are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"trakdis_recipe_{name}", RECIPES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def stage(run: Run, name: str, run_name: str, output: str, args: list[str], timings: dict[str, float]) -> Path:
+    """Run ``recipes/<name>.py`` as ``<root>/<name>/<run_name>`` unless its ``output`` exists; its
+    wall time goes to ``timings[run_name]``."""
+    cfg = run.cfg
+    directory = Path(cfg.root) / name / run_name
+    if (directory / output).exists():
+        run.print(f"{name}: {directory / output} exists, skipped")
+        return directory
+    common = ["--name", run_name, "--root", cfg.root, "--seed", str(cfg.seed), "--threads", str(cfg.threads)]
+    if not cfg.progress:
+        common.append("--no-progress")
+    if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv")):
+        common.append("--resume")  # an interrupted stage continues (evaluate.py starts over)
+    start = time.perf_counter()
+    recipe(name).main([*common, *args])
+    timings[run_name] = time.perf_counter() - start
+    run.print(f"{name}: done in {timings[run_name]:.0f} s ({directory})")
+    return directory
+
+
+def main(argv=None) -> pd.DataFrame:
+    run = Run.start("pipeline", PipelineConfig, argv, description=__doc__)
+    cfg = run.cfg
+    name = run.dir.name
+    timings: dict[str, float] = {}
+    teacher = stage(run, "online_dt", f"{name}-teacher", "policy.pt",
+                    ["--task", cfg.task, *shlex.split(cfg.teacher_args)], timings)
+    encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
+                    ["--task", cfg.task, *shlex.split(cfg.encoder_args)], timings)
+    student = stage(run, "distill", f"{name}-student", "policy.pt",
+                    ["--teacher", str(teacher), "--encoder", str(encoder), *shlex.split(cfg.student_args)], timings)
+    rows = []
+    horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
+    for label, policy in (("expert", "expert"), ("teacher", str(teacher)), ("student", str(student))):
+        directory = stage(run, "evaluate", f"{name}-eval-{label}", "summary.csv",
+                          ["--policy", policy, "--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials),
+                           "--videos", "0"], timings)
+        row = pd.read_csv(directory / "summary.csv").iloc[0].to_dict()
+        rows.append({**row, "policy": label})
+    teacher_mean = rows[1]["mean"]
+    for row in rows:
+        row["x_teacher"] = row["mean"] / teacher_mean if teacher_mean else float("nan")
+    write_summary_table(rows, run.dir / "summary.csv", run.dir / "summary.md",
+                        columns=("task", "policy", "n", "mean", "std", "p25", "p50", "p75", "x_teacher"))
+    run.finish()
+    if timings:
+        run.print(f"wall time {sum(timings.values()):.0f} s: " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items()))
+    print((run.dir / "summary.md").read_text())
+    return pd.read_csv(run.dir / "summary.csv")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
