@@ -43,8 +43,9 @@ class PipelineConfig(RunConfig):
     """cloth task"""
     trials: int = 100
     """evaluation episodes per policy (eval split, the same configurations for all three)"""
-    teacher_args: str = ""
-    """extra options for recipes/online_dt.py"""
+    teacher_args: str = "--state-noise 0.01"
+    """extra options for recipes/online_dt.py (default: train the teacher on states with 1 cm of
+    Gaussian noise, so that its weights act on an encoder's estimates, docs/recipes/distill.md)"""
     encoder_args: str = ""
     """extra options for recipes/train_encoder.py"""
     student_args: str = ""
