@@ -53,7 +53,8 @@ def test_online_dt_files_and_scores(teacher):
 
 def test_online_dt_offline_control(workdir, dataset):
     """--offline-control: the same rollouts, updates and evaluations, but no rollout enters the buffer."""
-    run_recipe(workdir, "online_dt", *online_dt_args("control", "--offline-control", "--online-rounds", 1, "--no-eval-expert", "--online-lr", 1e-4))
+    run_recipe(workdir, "online_dt", *online_dt_args("control", "--offline-control", "--online-rounds", 1, "--no-eval-expert",
+                                                     "--online-lr", 1e-4, "--state-noise", 0.01))
     run_dir = workdir / "runs" / "online_dt" / "control"
     ck = load_checkpoint(run_dir / "checkpoint.pt")
     assert ck["counters"]["rounds"] == 1 and ck["buffer"]["num_online_added"] == 0
@@ -61,6 +62,7 @@ def test_online_dt_offline_control(workdir, dataset):
     assert frame["online/normalized_performance"].notna().sum() == 1
     online_lr = frame.loc[frame["step"] > 6, "train/lr"].dropna()
     assert len(online_lr) and (online_lr == 1e-4).all()
+    assert json.loads((run_dir / "config.json").read_text())["state_noise"] == 0.01
 
 
 def test_online_dt_sigkill_then_resume_matches_uninterrupted(workdir, dataset, teacher):
