@@ -90,7 +90,7 @@ def main(argv=None) -> dict:
         extra_cfg = dataclasses.replace(cfg.data, path=None, expert_noise=float(noise))
         extra_path = ensure_dataset(extra_cfg, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed + 1, pixels=True,
                                     image_size=cfg.image_size, log=run.print, progress=cfg.progress)
-        extra.append(load_trajectories(extra_path, keys=("pixels", "state")))
+        extra.append((extra_path, *load_trajectories(extra_path, keys=("pixels", "state"))))
     n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 else 0
     perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
     # Split by episode (images of one episode are strongly correlated).
@@ -102,9 +102,10 @@ def main(argv=None) -> dict:
 
     train = flat(perm[n_val:])
     val = flat(perm[:n_val]) if n_val else None
-    for extra_data, extra_lengths in extra:  # training only: validation stays on the main dataset
+    for extra_path, extra_data, extra_lengths in extra:  # training only: validation stays on the main dataset
         valid = torch.arange(extra_data.shape[1]).unsqueeze(0) < extra_lengths.unsqueeze(1)
         train = torch.cat([train, extra_data.to_tensordict()[valid]])
+        run.print(f"training images +{int(valid.sum())} from {extra_path}")
     train_states = train["state"]
     mean, std = train_states.mean(0), train_states.std(0).clamp_min(1e-3)
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "

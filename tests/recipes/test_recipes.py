@@ -93,6 +93,21 @@ def test_train_encoder_stop_resume(workdir, dataset, encoder):
     assert json.loads((run_dir / "config.json").read_text())["aug"] is False
 
 
+def test_train_encoder_extra_noisy_data_and_keypoint_layout(workdir, dataset):
+    """--extra-noise collects (once) and adds a noisier dataset to the training images only; the
+    keypoint layout trains, saves its options and reports the error per state group in cm."""
+    out = run_recipe(workdir, "train_encoder", "--name", "enc_extra", "--horizon", HORIZON, *DATA, "--epochs", 1,
+                     "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--extra-noise", 0.4,
+                     "--head", "keypoints", "--stem-stride", 1, "--coord-channels")
+    assert (workdir / "datasets" / f"ClothFold_4ep_h{HORIZON}_noise0.4_px32" / "meta.json").exists()
+    # 4 episodes of 6 steps: 3 train + 1 validation from the main dataset, + 4 noisy ones for training
+    assert f"{7 * HORIZON} training / {HORIZON} validation images" in out.stdout
+    assert f"training images +{4 * HORIZON} from" in out.stdout
+    assert "corners" in out.stdout and "pickers" in out.stdout
+    saved = load_checkpoint(workdir / "runs" / "train_encoder" / "enc_extra" / "encoder.pt")
+    assert saved["encoder_kwargs"]["head"] == "keypoints" and set(saved["val_error_cm"]) == {"corners_cm", "pickers_cm"}
+
+
 def test_distill_files_and_resume(workdir, student):
     for name in ("config.json", "log.csv", "curves.png", "checkpoint.pt", "policy.pt"):
         assert (student / name).exists(), name
