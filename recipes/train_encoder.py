@@ -95,17 +95,17 @@ def main(argv=None) -> dict:
     perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
     # Split by episode (images of one episode are strongly correlated).
     # Only the real steps of each episode (steps past an episode's length are zero padding).
-    def flat(episodes):
+    def flat(steps, lengths, episodes):
         episodes = episodes.sort().values
-        valid = torch.arange(data.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
-        return data[episodes].to_tensordict()[valid]
+        valid = torch.arange(steps.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
+        return steps[episodes].to_tensordict()[valid]
 
-    train = flat(perm[n_val:])
-    val = flat(perm[:n_val]) if n_val else None
+    train = flat(data, lengths, perm[n_val:])
+    val = flat(data, lengths, perm[:n_val]) if n_val else None
     for extra_path, extra_data, extra_lengths in extra:  # training only: validation stays on the main dataset
-        valid = torch.arange(extra_data.shape[1]).unsqueeze(0) < extra_lengths.unsqueeze(1)
-        train = torch.cat([train, extra_data.to_tensordict()[valid]])
-        run.print(f"training images +{int(valid.sum())} from {extra_path}")
+        extra_steps = flat(extra_data, extra_lengths, torch.arange(extra_data.shape[0]))
+        train = torch.cat([train, extra_steps])
+        run.print(f"training images +{extra_steps.shape[0]} from {extra_path}")
     train_states = train["state"]
     mean, std = train_states.mean(0), train_states.std(0).clamp_min(1e-3)
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "
