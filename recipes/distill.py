@@ -60,13 +60,20 @@ class DistillConfig(OptimConfig, RunConfig):
     proprio_pickers: bool = False
     """take the picker positions of the student's state from proprioception (the true state)
     instead of the encoder (a deviation from the paper's image-only student)"""
-    act: Literal["student", "teacher"] = "teacher"
+    act: Literal["student", "teacher", "mixed"] = "teacher"
     """who acts in the training rollouts: the teacher (its labels are its own actions, on its own
-    history), or the student (DAgger; measured to collapse the student, docs/recipes/distill.md)"""
+    history), the student (DAgger), or both (DAgger's mixture: the teacher's share of each round's
+    episodes falls linearly from all in the first round to none in the last)"""
+    teacher_context: Literal["window", "step"] = "window"
+    """what the teacher reads to label a step: the whole window (the acting policy's action history
+    included) or that step's tokens alone (labels independent of who acted; see DistillationLoss)"""
+    expert_data: bool = False
+    """also distil on the expert dataset (--data.*): its images through the frozen encoder, the
+    teacher reading its true states; return-to-go is then the hindsight return for all windows"""
     rounds: int = 10
     """rounds of (roll out, update); --no-distill: rounds of updates only"""
     episodes_per_round: int = 2
-    """episodes rolled out per round"""
+    """episodes rolled out per round (0: none, with --expert-data)"""
     updates_per_round: int = 50
     """updates per round"""
     batch_size: int = 64
@@ -89,7 +96,7 @@ class DistillConfig(OptimConfig, RunConfig):
     early_windows: bool = True
     """also sample windows that begin before an episode's first step (see online_dt.py)"""
     data: DataConfig = field(default_factory=DataConfig)
-    """expert dataset for --no-distill"""
+    """expert dataset for --no-distill and --expert-data"""
     eval_episodes: int = 10
     """evaluation episodes (eval split)"""
     eval_every: int = 5
@@ -114,6 +121,18 @@ def _resolve(spec: str, root: str, recipe: str, filename: str) -> Path:
         raise FileNotFoundError(f"no {filename} under {Path(root) / recipe}: run recipes/{recipe}.py first "
                                 f"or pass --{'teacher' if recipe == 'online_dt' else 'encoder'} PATH")
     return run / filename
+
+
+def _episode_shares(cfg: DistillConfig, round_index: int) -> list[int]:
+    """Episodes per acting policy in this round: all for one policy, or DAgger's decaying mixture
+    (teacher share 1 in the first round, 0 in the last)."""
+    if not cfg.distill or cfg.episodes_per_round == 0:
+        return []
+    if cfg.act != "mixed":
+        return [cfg.episodes_per_round]
+    beta = 1.0 - round_index / max(cfg.rounds - 1, 1)
+    n_teacher = round(beta * cfg.episodes_per_round)
+    return [n_teacher, cfg.episodes_per_round - n_teacher]
 
 
 def main(argv=None) -> dict:
@@ -142,7 +161,7 @@ def main(argv=None) -> dict:
 
     if cfg.distill:
         loss = DistillationLoss(student, teacher.actor, kl_coef=cfg.kl_coef, loss_function=cfg.loss_function,
-                                action_eps=dt_cfg.action_eps)
+                                action_eps=dt_cfg.action_eps, teacher_context=cfg.teacher_context)
         obs_keys = ("state", "state_estimate")
     else:
         loss = DTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
@@ -170,9 +189,12 @@ def main(argv=None) -> dict:
             td = step(td)
         return td
 
+    if cfg.episodes_per_round < 0 or (cfg.distill and cfg.episodes_per_round == 0 and not cfg.expert_data):
+        raise ValueError(f"--episodes-per-round {cfg.episodes_per_round}: distillation needs rollouts (>= 1) or "
+                         f"--expert-data")
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
                          transform=transform, early_windows=cfg.early_windows,
-                         relabel_return_to_go=not cfg.distill or cfg.return_to_go == "hindsight")
+                         relabel_return_to_go=not cfg.distill or cfg.expert_data or cfg.return_to_go == "hindsight")
     counters = {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}
 
     state = run.resume_state()
@@ -180,18 +202,19 @@ def main(argv=None) -> dict:
         updater.load_state_dict(state["updater"])
         buffer.load_state_dict(state["buffer"])
         counters.update(state["counters"])
-    elif not cfg.distill:
-        # No-Distill: the expert dataset's images through the frozen encoder.
+    elif not cfg.distill or cfg.expert_data:
+        # The expert dataset's images through the frozen encoder (No-Distill: with the expert's
+        # actions as targets; --expert-data: with the teacher's labels on the true states).
         path = ensure_dataset(cfg.data, task=task, horizon=horizon, seed=cfg.seed, pixels=True, log=run.print,
                               progress=cfg.progress)
         data, lengths = load_trajectories(path, keys=("pixels", "action", "reward", "state"))
         with torch.no_grad():
             pixels = data.get("pixels")
             est = torch.cat([encoder(torch.as_tensor(pixels[i : i + 16])) for i in range(0, data.shape[0], 16)])
-        offline = data.select("action", "reward", *(("state",) if cfg.proprio_pickers else ())).to_tensordict()
+        offline = data.select("action", "reward", *(("state",) if cfg.proprio_pickers or cfg.distill else ())).to_tensordict()
         offline.set("state_estimate", est)
         buffer.load_offline(offline, lengths)
-        run.print(f"--no-distill: {data.shape[0]} expert episodes from {path}")
+        run.print(f"{'--expert-data' if cfg.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
 
     student_handle = PolicyHandle("student", task, horizon, actor=student, encoder=encoder,
                                   observation_key="state_estimate", target_return=teacher.target_return,
@@ -220,13 +243,15 @@ def main(argv=None) -> dict:
 
     eval_seed = cfg.seed + 10_000
     eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
-    act_handle = student_handle if cfg.act == "student" else PolicyHandle(
+    teacher_actor_handle = PolicyHandle(
         "teacher", task, horizon, actor=teacher.actor, encoder=encoder, observation_key="state",
         target_return=teacher.target_return, rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
         normalizer=teacher.normalizer)
+    actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
+              "mixed": [teacher_actor_handle, student_handle]}[cfg.act] if cfg.distill and cfg.episodes_per_round else []
     # Rollouts carry both the true state and the encoder's (noisy) estimate.
-    roll_env = act_handle.make_env(num_envs=cfg.num_envs, split="train", state_noise=cfg.state_noise,
-                                   noise_seed=cfg.seed + 7919, parallel=cfg.parallel) if cfg.distill else None
+    roll_envs = [h.make_env(num_envs=cfg.num_envs, split="train", state_noise=cfg.state_noise,
+                            noise_seed=cfg.seed + 7919 + i, parallel=cfg.parallel) for i, h in enumerate(actors)]
     if state is not None:  # after building the envs, so the RNG streams continue exactly
         set_rng_state(state["rng"])
     try:
@@ -239,15 +264,16 @@ def main(argv=None) -> dict:
         if counters["initial_eval"] is None:
             counters["initial_eval"] = evaluate(student_handle, eval_env, "student before training")
         while counters["rounds"] < cfg.rounds:
-            if cfg.distill:
-                res = run_episodes(roll_env, act_handle.make_policy(), cfg.episodes_per_round, max_steps=horizon,
-                                   deterministic=True, keep_episodes=True, desc="rollout",
-                                   seed=cfg.seed + 1000 * (counters["rounds"] + 1))
+            rollout_metrics = {}
+            for i, (handle, n) in enumerate(zip(actors, _episode_shares(cfg, counters["rounds"]))):
+                if n == 0:
+                    continue
+                res = run_episodes(roll_envs[i], handle.make_policy(), n, max_steps=horizon, deterministic=True,
+                                   keep_episodes=True, desc=f"rollout ({handle.kind})",
+                                   seed=cfg.seed + 1000 * (counters["rounds"] + 1) + 100 * i)
                 for ep in res.episodes:
                     buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action", "return_to_go")))
-                rollout_metrics = {"rollout/normalized_performance": float(res.final_performance.mean())}
-            else:
-                rollout_metrics = {}
+                rollout_metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
             student.train()
             history = []
             for _ in progress(range(cfg.updates_per_round), desc=f"round {counters['rounds'] + 1}"):
@@ -257,8 +283,7 @@ def main(argv=None) -> dict:
             run.log(counters["updates"], {**mean_metrics(history), **rollout_metrics, "round": counters["rounds"]})
             key = "train/loss_distill" if cfg.distill else "train/loss_nll"
             run.print(f"round {counters['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
-                      + (f", rollout normalized performance {rollout_metrics['rollout/normalized_performance']:.3f}"
-                         if rollout_metrics else ""))
+                      + "".join(f", rollout ({k.split('/')[1].split('_')[0]}) {v:.3f}" for k, v in rollout_metrics.items()))
             if counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.rounds:
                 evaluate(student_handle, eval_env, f"student after round {counters['rounds']}")
             checkpoint()
@@ -268,8 +293,8 @@ def main(argv=None) -> dict:
         final = evaluate(student_handle, eval_env, "student after distillation")
     finally:
         close_env(eval_env)
-        if roll_env is not None:
-            close_env(roll_env)
+        for env in roll_envs:
+            close_env(env)
     counters["final_eval"] = final
     save_policy(run.dir / "policy.pt", kind="student", task=task, horizon=horizon, dt_config=dt_cfg, actor=student,
                 observation_key="state_estimate", target_return=teacher.target_return, rtg_scale=teacher.rtg_scale,

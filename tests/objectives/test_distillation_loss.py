@@ -182,3 +182,33 @@ def test_mse_ignores_a_gap_the_actions_do_not_show():
     assert gap["nll"] > nll_same + 1.0  # the same actions, a larger NLL
     with pytest.raises(ValueError, match="loss_function"):
         DistillationLoss(student, teacher, loss_function="l1")
+
+
+def test_step_context_labels_each_step_from_its_own_tokens(actors):
+    student, teacher = actors
+    td = window()
+    m = td["mask"]
+    loss = DistillationLoss(student, teacher, loss_function="mse", teacher_context="step")
+    out = loss(td.clone())
+    # the label of step k is the teacher's action on the one-step window (rtg_k, s_k, t_k)
+    with torch.no_grad():
+        labels = torch.zeros(B, K, A)
+        for b in range(B):
+            for k in range(K):
+                one = td[b : b + 1, k : k + 1].clone()
+                one["mask"] = torch.ones(1, 1, dtype=torch.bool)
+                labels[b, k] = torch.tanh(teacher.get_dist(one).root_dist.loc)[0, 0]
+        s_act = torch.tanh(student.get_dist(td.clone()).root_dist.loc)
+        expected = (s_act - labels).pow(2).sum(-1)[m].mean()
+    torch.testing.assert_close(out["loss_distill"], expected)
+    # the acting policy's action history no longer changes the labels...
+    td2 = td.clone()
+    td2["action"] = torch.rand_like(td2["action"]) * 2 - 1
+    with torch.no_grad():
+        t2 = loss.teacher_dist(td2)[0]
+    torch.testing.assert_close(t2[m], labels[m])
+    # ...while the whole-window teacher reads it
+    t_window = DistillationLoss(student, teacher, teacher_context="window").teacher_dist(td2)[0]
+    assert not torch.allclose(t_window[m], labels[m])
+    with pytest.raises(ValueError, match="teacher_context"):
+        DistillationLoss(student, teacher, teacher_context="history")

@@ -137,6 +137,24 @@ def test_distill_ablations(workdir, teacher, encoder):
     assert load_policy(workdir / "runs" / "distill" / "ablation").proprio_dims == tuple(range(12, 18))
 
 
+def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
+    # DAgger's mixture: the teacher drives the first round, the student the last
+    run_recipe(workdir, "distill", *distill_args("mixed", "--act", "mixed", "--teacher-context", "step",
+                                                  "--no-eval-teacher"))
+    frame = read_log(workdir / "runs" / "distill" / "mixed")
+    rounds = frame[frame["round"].notna()]
+    assert rounds["rollout/teacher_normalized_performance"].notna().tolist() == [True, False]
+    assert rounds["rollout/student_normalized_performance"].notna().tolist() == [False, True]
+    # the expert dataset alone, with the teacher's labels
+    out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
+                                                        "--no-eval-teacher", *DATA))
+    assert "--expert-data" in out.stdout
+    frame = read_log(workdir / "runs" / "distill" / "offline")
+    assert frame["train/loss_distill"].notna().sum() == 2 and not any(c.startswith("rollout/") for c in frame.columns)
+    with pytest.raises(pytest.fail.Exception, match="distillation needs rollouts"):
+        run_recipe(workdir, "distill", *distill_args("none", "--episodes-per-round", 0, "--no-eval-teacher"))
+
+
 def test_evaluate_student_and_expert(workdir, student):
     run_recipe(workdir, "evaluate", "--name", "ev", "--policy", "runs/distill/student", "--trials", 3,
                "--state-noise", 0, 1e-3, "--videos", 1, "--video-size", 64, "--threads", 1)

@@ -15,6 +15,7 @@ __all__ = ["DistillationLoss"]
 
 _KL_DIRECTIONS = ("teacher_student", "student_teacher")
 _LOSS_FUNCTIONS = ("nll", "mse")
+_TEACHER_CONTEXTS = ("window", "step")
 
 
 class DistillationLoss(LossModule):
@@ -39,6 +40,12 @@ class DistillationLoss(LossModule):
       KL is invariant under that shared bijection, so the KL is computed exactly, in closed form,
       on the pre-tanh Gaussians (a sample-based estimate through ``atanh`` is noisy and
       numerically poor where tanh saturates). The teacher side is a constant.
+    * ``teacher_context="window"``: the teacher reads the whole window, the acting policy's action
+      history included; ``"step"``: the teacher labels every step from that step's tokens alone
+      (return-to-go, state, timestep), as at the first step of a window that starts mid-episode,
+      which DT training samples. With student-driven rollouts (DAgger) the window's actions are
+      the student's, and a teacher conditioned on them labels a history it would not have
+      produced; ``"step"`` removes that dependence (docs/recipes/distill.md).
     * metric ``teacher_student_mse``: masked mean squared difference of the deterministic actions.
 
     The teacher is evaluated in eval mode (no dropout) whatever its ``training`` flag, so its
@@ -53,6 +60,7 @@ class DistillationLoss(LossModule):
         kl_direction: ``"teacher_student"`` or ``"student_teacher"``.
         loss_function: ``"nll"`` or ``"mse"`` (see above).
         action_eps: clamp of the teacher's actions away from +-1.
+        teacher_context: ``"window"`` or ``"step"`` (see above).
     """
 
     @dataclass
@@ -80,8 +88,11 @@ class DistillationLoss(LossModule):
         kl_direction: str = "teacher_student",
         loss_function: str = "nll",
         action_eps: float = 1e-6,
+        teacher_context: str = "window",
     ) -> None:
         super().__init__()
+        if teacher_context not in _TEACHER_CONTEXTS:
+            raise ValueError(f"teacher_context={teacher_context!r}; expected one of {_TEACHER_CONTEXTS}")
         if loss_function not in _LOSS_FUNCTIONS:
             raise ValueError(f"loss_function={loss_function!r}; expected one of {_LOSS_FUNCTIONS}")
         if kl_direction not in _KL_DIRECTIONS:
@@ -100,6 +111,7 @@ class DistillationLoss(LossModule):
         self.kl_direction = kl_direction
         self.loss_function = loss_function
         self.action_eps = float(action_eps)
+        self.teacher_context = teacher_context
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -114,23 +126,36 @@ class DistillationLoss(LossModule):
         return ["loss_distill"] + (["loss_kl"] if self.kl_coef > 0 else []) + ["teacher_student_mse"]
 
     def teacher_dist(self, tensordict: TensorDictBase):
-        """The teacher's per-step distribution, always computed in eval mode (no dropout)."""
+        """The teacher's per-step distribution, always computed in eval mode (no dropout).
+
+        Returns ``(action, loc, scale)``: the deterministic action and the pre-tanh Gaussian's
+        parameters, each ``[*B, K, action_dim]``.
+        """
         teacher = self.teacher_network
+        td = tensordict.copy()
+        if self.teacher_context == "step":
+            # [*B, K] -> [*B, K, 1]: every step is a window of length one. Padded steps become
+            # real one-step windows (finite zeros); their labels are masked out of the loss.
+            td = td.unsqueeze(-1)
+            td.set(self.tensor_keys.mask, torch.ones(td.shape, dtype=torch.bool, device=td.device))
         was_training = teacher.training
         teacher.eval()
         try:
             with self.teacher_network_params.to_module(teacher):
-                return teacher.get_dist(tensordict.copy())
+                dist = teacher.get_dist(td)
         finally:
             teacher.train(was_training)
+        out = (dist.deterministic_sample, dist.root_dist.loc, dist.root_dist.scale)
+        if self.teacher_context == "step":
+            out = tuple(x.squeeze(-2) for x in out)
+        return out
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         student_td = tensordict.select(*self.student_network.in_keys, strict=True).detach()
         with self.student_network_params.to_module(self.student_network):
             s_dist = self.student_network.get_dist(student_td)
         with torch.no_grad():
-            t_dist = self.teacher_dist(tensordict)
-            t_action = t_dist.deterministic_sample
+            t_action, t_loc, t_scale = self.teacher_dist(tensordict)
         s_action = s_dist.deterministic_sample
         if self.loss_function == "nll":
             per_step = -s_dist.log_prob(clamp_action(t_action, self.action_eps))
@@ -142,7 +167,7 @@ class DistillationLoss(LossModule):
             # KL is invariant under a bijection applied to both distributions, and both are the
             # same tanh of a diagonal Gaussian: the KL of the TanhNormals is exactly the
             # closed-form KL of the pre-tanh Gaussians (no sampling noise, no atanh round trip).
-            t_base = torch.distributions.Normal(t_dist.root_dist.loc, t_dist.root_dist.scale)
+            t_base = torch.distributions.Normal(t_loc, t_scale)
             s_base = torch.distributions.Normal(s_dist.root_dist.loc, s_dist.root_dist.scale)
             if self.kl_direction == "teacher_student":
                 kl = torch.distributions.kl_divergence(t_base, s_base).sum(-1)
