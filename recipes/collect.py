@@ -55,7 +55,7 @@ class CollectConfig:
 
 
 def main(argv=None):
-    cfg, _ = parse_config(CollectConfig, argv, description=__doc__)
+    cfg = parse_config(CollectConfig, argv, description=__doc__)
     torch.set_num_threads(max(1, cfg.threads))
     t0 = time.time()
     data = DataConfig(path=cfg.path, root=cfg.root, episodes=cfg.episodes, expert_noise=cfg.expert_noise,

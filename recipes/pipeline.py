@@ -13,8 +13,8 @@
 
 Each stage is an ordinary run of its recipe under ``<root>/<recipe>/<name>-<stage>``; a stage whose
 output file exists is skipped and an interrupted one is resumed, so ``--resume`` continues the
-pipeline. Extra options go to one stage with ``--teacher-args "..."``, ``--encoder-args "..."``,
-``--student-args "..."``. Writes ``<root>/pipeline/<name>/summary.md`` and ``summary.csv``.
+pipeline. Extra options go to one stage with ``--teacher-args="..."``, ``--encoder-args="..."``,
+``--student-args="..."`` (with ``=``: the value starts with ``--``). Writes ``<root>/pipeline/<name>/summary.md`` and ``summary.csv``.
 """
 from __future__ import annotations
 

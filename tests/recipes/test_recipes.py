@@ -1,6 +1,7 @@
 """Every recipe runs end to end as a subprocess with a tiny configuration and leaves its files;
 killed or stopped runs resume from their checkpoint with nothing lost or duplicated."""
 import json
+import re
 
 import cv2
 import pandas as pd
@@ -199,15 +200,15 @@ def test_paper_preset_config():
     from trakdis.utils.config import parse_config
 
     module = load_recipe("online_dt")
-    cfg, _ = parse_config(module.OnlineDTConfig, ["--preset", "paper", "--model.n-layer", "1", "--data.episodes", "4"],
-                          presets=module.PRESETS)
+    cfg = parse_config(module.OnlineDTConfig, ["--preset", "paper", "--model.n-layer", "1", "--data.episodes", "4"],
+                      presets=module.PRESETS)
     assert (cfg.model.embed_dim, cfg.model.n_layer, cfg.model.n_head, cfg.model.context_len) == (256, 1, 16, 30)
     assert cfg.optimizer == "lamb" and cfg.lr == 1e-4 and cfg.weight_decay == 1e-4 and cfg.eval_rtg == -1.0
     assert cfg.data.episodes == 4  # explicit flags win over the preset
     dt = cfg.model.dt_config(18, 8, horizon=100)
     assert (dt.embed_dim, dt.n_head, dt.context_len) == (256, 16, 30)
     module = load_recipe("distill")
-    cfg, _ = parse_config(module.DistillConfig, ["--preset", "paper"], presets=module.PRESETS)
+    cfg = parse_config(module.DistillConfig, ["--preset", "paper"], presets=module.PRESETS)
     assert cfg.rounds == 60 and cfg.optimizer == "lamb"
 
 
@@ -217,11 +218,13 @@ def test_paper_preset_config():
     ("evaluate", ["--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--horizon", "0"], r"--horizon 0"),
 ])
-def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, recipe, args, message):
+def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, capsys, recipe, args, message):
     # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(SystemExit) as exc:
         load_recipe(recipe).main(["--name", "bad", "--task", "ClothFold", *args])
+    assert exc.value.code == 2
+    assert re.search(message, " ".join(re.sub(r"[│╭╮╰╯─]", " ", capsys.readouterr().err).split()))
     assert list(tmp_path.iterdir()) == []
 
 
@@ -232,8 +235,8 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
                                  "--channels", 4, 4, 4, 4, "--hidden-dim", 16]))
     student = "--rounds 1 --updates-per-round 2 --episodes-per-round 2 --eval-episodes 2 --batch-size 8 --loss-function mse"
-    args = ["--name", "pipe", "--trials", 2, "--teacher-args", teacher, "--encoder-args", encoder,
-            "--student-args", student, "--threads", 1]
+    args = ["--name", "pipe", "--trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
+            f"--student-args={student}", "--threads", 1]
     run_recipe(workdir, "pipeline", *args, timeout=400)
     table = pd.read_csv(workdir / "runs" / "pipeline" / "pipe" / "summary.csv")
     assert table["policy"].tolist() == ["expert", "teacher", "student"]

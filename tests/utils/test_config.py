@@ -1,5 +1,8 @@
-import dataclasses
+"""The glue around tyro: presets below the typed flags, a default instance (a resumed run's own
+configuration) that only the typed flags change, and config.json round trips; plus the CLI
+behaviour the recipes and docs rely on (spellings, booleans, nested sections, errors)."""
 import json
+import re
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
@@ -7,10 +10,8 @@ import pytest
 
 from trakdis.utils.config import (
     apply_overrides,
-    build_parser,
     config_from_dict,
     config_to_dict,
-    field_docs,
     load_config,
     parse_config,
     save_config,
@@ -22,11 +23,16 @@ class Model:
     embed_dim: int = 64
     """width of the token embeddings"""
     num_layers: int = 2
-    dropout: float = field(default=0.1, metadata={"help": "dropout probability"})
 
 
 @dataclass
-class Cfg:
+class Base:
+    resume: bool = False
+    """continue a run"""
+
+
+@dataclass
+class Cfg(Base):
     task: Literal["ClothFold", "ClothFoldDiagonalPinned"] = "ClothFold"
     """which task"""
     lr: float = 1e-4
@@ -36,72 +42,95 @@ class Cfg:
     """use image augmentation"""
     name: Optional[str] = None
     sizes: tuple[int, ...] = (32, 32)
+    extra: str = ""
     model: Model = field(default_factory=Model)
 
-
-PRESETS = {"paper": {"model": {"embed_dim": 256, "num_layers": 10}, "lr": 1e-4}, "fast": {"steps": 3}}
-
-
-def test_defaults_and_overrides():
-    cfg, explicit = parse_config(Cfg, [])
-    assert cfg == Cfg() and explicit == {}
-    cfg, explicit = parse_config(
-        Cfg,
-        ["--lr", "3e-4", "--no-aug", "--model.embed-dim", "8", "--sizes", "16", "8", "4", "--name", "x"],
-    )
-    assert cfg.lr == 3e-4 and cfg.aug is False and cfg.model.embed_dim == 8
-    assert cfg.sizes == (16, 8, 4) and cfg.name == "x"
-    assert cfg.model.num_layers == 2  # untouched nested default
-    assert explicit == {"lr": 3e-4, "aug": False, "model.embed_dim": 8, "sizes": [16, 8, 4], "name": "x"}
+    def __post_init__(self):
+        if self.steps < 0:
+            raise ValueError(f"--steps {self.steps}: must be >= 0")
 
 
-def test_underscore_spelling_and_none():
-    cfg, _ = parse_config(Cfg, ["--model.num_layers", "5", "--name", "none"])
-    assert cfg.model.num_layers == 5 and cfg.name is None
+PRESETS = {"paper": {"model": {"embed_dim": 256, "num_layers": 10}, "lr": 3e-4}, "fast": {"steps": 3}}
 
 
-def test_preset_below_explicit_flags():
-    cfg, _ = parse_config(Cfg, ["--preset", "paper"], presets=PRESETS)
-    assert cfg.model.embed_dim == 256 and cfg.model.num_layers == 10
-    cfg, _ = parse_config(Cfg, ["--preset", "paper", "--model.num-layers", "3"], presets=PRESETS)
-    assert cfg.model.embed_dim == 256 and cfg.model.num_layers == 3
+def error_text(capsys) -> str:
+    """tyro's message without its box and line wrapping."""
+    return " ".join(re.sub(r"[│╭╮╰╯─]", " ", capsys.readouterr().err).split())
 
 
-def test_bad_values_exit_with_message(capsys):
-    with pytest.raises(SystemExit):
-        parse_config(Cfg, ["--steps", "ten"])
-    assert "--steps" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        parse_config(Cfg, ["--task", "Nope"])
-    with pytest.raises(SystemExit):
-        parse_config(Cfg, ["--unknown", "1"])
+def test_defaults_flags_and_spellings():
+    assert parse_config(Cfg, []) == Cfg()
+    cfg = parse_config(Cfg, ["--lr", "-3e-4", "--no-aug", "--model.embed-dim", "8", "--model.num_layers", "5",
+                             "--sizes", "16", "8", "4", "--name", "x", "--extra=--flag 1"])
+    assert cfg.lr == -3e-4 and cfg.aug is False and cfg.sizes == (16, 8, 4) and cfg.name == "x"
+    assert (cfg.model.embed_dim, cfg.model.num_layers) == (8, 5)  # hyphen and underscore spellings
+    assert cfg.extra == "--flag 1"  # a value that looks like options: --opt=VALUE
+    assert parse_config(Cfg, ["--aug", "--name", "None", "--sizes"]) == Cfg(sizes=())
 
 
-def test_help_has_docs():
-    text = build_parser(Cfg, presets=PRESETS).format_help()
-    for needle in ("learning rate (100% of it)", "use image augmentation", "--no-aug",
-                   "width of the token embeddings", "dropout probability", "--model.embed-dim", "--preset"):
+def test_preset_sits_between_defaults_and_typed_flags():
+    cfg = parse_config(Cfg, ["--preset", "paper"], presets=PRESETS)
+    assert (cfg.model.embed_dim, cfg.model.num_layers, cfg.lr, cfg.steps) == (256, 10, 3e-4, 10)
+    cfg = parse_config(Cfg, ["--model.num-layers", "3", "--preset", "paper"], presets=PRESETS)
+    assert (cfg.model.embed_dim, cfg.model.num_layers) == (256, 3)  # the flag wins wherever it is typed
+
+
+def test_default_instance_changes_only_typed_flags():
+    # how a resumed run works: its config.json is the default, and a preset is not applied again
+    own = Cfg(lr=0.5, steps=7, aug=False, model=Model(embed_dim=12))
+    cfg = parse_config(Cfg, ["--resume", "--preset", "paper", "--steps", "9"], presets=PRESETS, default=own)
+    assert cfg == Cfg(resume=True, lr=0.5, steps=9, aug=False, model=Model(embed_dim=12))
+
+
+def test_booleans_listed_once_in_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        parse_config(Cfg, ["--preset", "paper", "--help"], presets=PRESETS, description="Train a thing.")
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    for needle in ("Train a thing.", "--preset {fast,paper}", "learning rate (100% of it)",
+                   "use image augmentation", "width of the token embeddings", "--model.embed-dim", "continue a run"):
         assert needle in text, needle
-    assert field_docs(Model)["embed_dim"] == "width of the token embeddings"
+    assert text.count("--no-aug") == 1 and text.count("--aug,") == 1
+    assert "(default: 256)" in text  # the help shows the preset's values
 
 
-def test_roundtrip_json(tmp_path):
-    cfg = apply_overrides(Cfg(), {"model.embed_dim": 12, "sizes": [1, 2]})
-    assert cfg.sizes == (1, 2)
+@pytest.mark.parametrize("argv,needles", [
+    (["--steps", "ten"], ["--steps", "ten"]),
+    (["--model.embed-dim", "x"], ["--model.embed-dim"]),
+    (["--task", "Nope"], ["--task", "Nope"]),
+    (["--unknown", "1"], ["--unknown"]),
+    (["--steps", "-1"], ["--steps -1: must be >= 0"]),  # __post_init__'s ValueError
+    (["--preset", "slow"], ["--preset", "slow"]),
+])
+def test_bad_values_exit_naming_the_option(capsys, argv, needles):
+    with pytest.raises(SystemExit) as exc:
+        parse_config(Cfg, argv, presets=PRESETS)
+    assert exc.value.code == 2
+    text = error_text(capsys)
+    for needle in needles:
+        assert needle in text, (needle, text)
+
+
+def test_json_roundtrip(tmp_path):
+    cfg = apply_overrides(Cfg(), {"model": {"embed_dim": 12}, "sizes": [1, 2]})
+    assert cfg.sizes == (1, 2) and cfg.model == Model(embed_dim=12, num_layers=2)
     path = save_config(cfg, tmp_path / "config.json")
     data = json.loads(path.read_text())
     assert data["model"]["embed_dim"] == 12 and data["sizes"] == [1, 2]
     assert load_config(Cfg, path) == cfg
     assert config_from_dict(Cfg, config_to_dict(cfg)) == cfg
+    assert config_from_dict(Cfg, {"steps": 3}) == Cfg(steps=3)  # missing keys keep their defaults
 
 
-def test_errors_name_the_field(tmp_path):
-    with pytest.raises(KeyError, match="bogus"):
+def test_json_errors_name_the_field(tmp_path):
+    with pytest.raises(Exception, match="bogus"):
         apply_overrides(Cfg(), {"bogus": 1})
-    with pytest.raises(KeyError, match="model"):
+    with pytest.raises(Exception, match="nope"):
         config_from_dict(Cfg, {"model": {"nope": 1}})
-    with pytest.raises(ValueError, match="steps"):
-        config_from_dict(Cfg, {"steps": "many"})
+    with pytest.raises(Exception, match="model.embed_dim"):
+        config_from_dict(Cfg, {"model": {"embed_dim": "wide"}})
+    (tmp_path / "config.json").write_text(json.dumps({"steps": "many"}))
+    with pytest.raises(ValueError, match=r"config.json.*steps"):
+        load_config(Cfg, tmp_path / "config.json")
     with pytest.raises(FileNotFoundError, match="missing.json"):
         load_config(Cfg, tmp_path / "missing.json")
-    assert dataclasses.is_dataclass(Cfg())

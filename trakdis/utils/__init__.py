@@ -12,7 +12,6 @@ from .checkpoint import (
 )
 from .config import (
     apply_overrides,
-    build_parser,
     config_from_dict,
     config_to_dict,
     load_config,
@@ -36,7 +35,6 @@ __all__ = [
     "save_checkpoint",
     "set_rng_state",
     "apply_overrides",
-    "build_parser",
     "config_from_dict",
     "config_to_dict",
     "load_config",

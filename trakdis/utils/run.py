@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from .checkpoint import load_checkpoint, save_checkpoint
-from .config import apply_overrides, load_config, parse_config, save_config
+from .config import load_config, parse_config, save_config
 from .logger import CSVLogger, make_run_dir
 from .plot import plot_csv
 
@@ -75,11 +75,10 @@ def seed_everything(seed: int) -> None:
 class Run:
     """A recipe run: resolved config, run directory, CSV log and checkpoint."""
 
-    def __init__(self, recipe: str, cfg: Any, directory: Path, explicit: Mapping[str, Any]):
+    def __init__(self, recipe: str, cfg: Any, directory: Path):
         self.recipe = recipe
         self.cfg = cfg
         self.dir = Path(directory)
-        self.explicit = dict(explicit)
         self.checkpoint_path = self.dir / "checkpoint.pt"
         self.log_path = self.dir / "log.csv"
         self._logger: CSVLogger | None = None
@@ -97,20 +96,23 @@ class Run:
         presets: Mapping[str, Mapping[str, Any]] | None = None,
         description: str | None = None,
     ) -> "Run":
-        cfg, explicit = parse_config(cfg_cls, argv, presets=presets, description=description)
-        directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=cfg.resume)
+        cfg = parse_config(cfg_cls, argv, presets=presets, description=description)
+        resuming = cfg.resume
+        directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=resuming)
         saved = directory / "config.json"
-        if cfg.resume:
+        if resuming:
             if not saved.is_file():  # resuming on the defaults would silently run another configuration
                 raise FileNotFoundError(
                     f"--resume: {saved} is missing, so the configuration of run {directory} is unknown; restore "
                     f"the file, or start a new run without --resume")
-            # --stop-after belongs to one invocation: a resumed run never inherits it.
-            cfg = apply_overrides(load_config(cfg_cls, saved), {"stop_after": None, **explicit})
+            # The run's own configuration is the default that the typed flags override; --stop-after
+            # belongs to one invocation, so a resumed run never inherits it.
+            own = dataclasses.replace(load_config(cfg_cls, saved), stop_after=None)
+            cfg = parse_config(cfg_cls, argv, presets=presets, description=description, default=own)
         cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
         save_config(cfg, saved)
-        run = cls(recipe, cfg, directory, explicit)
-        run.resuming = bool(explicit.get("resume", False))
+        run = cls(recipe, cfg, directory)
+        run.resuming = resuming
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
         if not cfg.progress:
