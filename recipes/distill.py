@@ -9,16 +9,19 @@
 1. The student has the teacher's architecture and starts as a copy of its weights
    (``--no-weight-copy``: fresh weights); it reads ``"state_estimate"`` = encoder(pixels).
    Teacher and encoder are frozen.
-2. Each round, ``--episodes-per-round`` episodes are rolled out (by the teacher by default, or
-   by the student, DAgger-style, with ``--act student``) on the train split; every step keeps
-   both the true state and the encoder's estimate, so teacher and student see the same episodes.
-3. ``--updates-per-round`` updates of the distillation loss on the same windows, the teacher
-   reading the true state: the squared error between the two mean actions (``--loss-function
-   mse``, default) or the student's negative log-likelihood of the teacher's action (``nll``,
-   the paper's). ``--no-distill`` replaces the teacher's labels with the expert
-   dataset's actions (student DT on encoder(images) of the expert data, loss = DT NLL).
+2. Distillation data: the expert dataset's episodes (``--data.*``, the teacher's own training
+   data), their images through the encoder, their true states for the teacher; optionally
+   ``--episodes-per-round`` rollouts per round on the train split (by the teacher, the student
+   with ``--act student``, or DAgger's decaying mixture with ``--act mixed``), every step keeping
+   both the true state and the estimate. ``--no-expert-data`` uses the rollouts alone (the paper).
+3. ``--updates-per-round`` updates of the distillation loss, the teacher reading the true state:
+   the student's negative log-likelihood of the teacher's action (``--loss-function nll``, the
+   paper's, default) or the squared error of the two mean actions (``mse``). ``--no-distill``
+   replaces the teacher's labels with the expert dataset's actions (ablation No-Distill).
 4. Evaluation on the eval split (mean action) before training, every ``--eval-every`` rounds and
    at the end; the teacher is evaluated on the same episodes for reference.
+
+The defaults are the arm measured not to lower the weight copy (docs/recipes/distill.md).
 
 Writes ``runs/distill/<name>/`` with ``config.json``, ``log.csv``, ``curves.png``,
 ``checkpoint.pt`` (resume) and ``policy.pt`` (student + encoder, for evaluate.py).
@@ -67,13 +70,15 @@ class DistillConfig(OptimConfig, RunConfig):
     teacher_context: Literal["window", "step"] = "window"
     """what the teacher reads to label a step: the whole window (the acting policy's action history
     included) or that step's tokens alone (labels independent of who acted; see DistillationLoss)"""
-    expert_data: bool = False
-    """also distil on the expert dataset (--data.*): its images through the frozen encoder, the
-    teacher reading its true states; return-to-go is then the hindsight return for all windows"""
+    expert_data: bool = True
+    """distil on the expert dataset's episodes (--data.*, the teacher's own training data): its images
+    through the frozen encoder, the teacher reading its true states; return-to-go is then the
+    hindsight return for all windows"""
     rounds: int = 10
     """rounds of (roll out, update); --no-distill: rounds of updates only"""
-    episodes_per_round: int = 2
-    """episodes rolled out per round (0: none, with --expert-data)"""
+    episodes_per_round: int = 0
+    """episodes rolled out per round and added to the distillation data (0: the expert dataset only;
+    rollouts were measured to lower the student, docs/recipes/distill.md)"""
     updates_per_round: int = 50
     """updates per round"""
     batch_size: int = 64
@@ -82,7 +87,7 @@ class DistillConfig(OptimConfig, RunConfig):
     """learning rate"""
     warmup_steps: int = 20
     """linear learning-rate warm-up (updates)"""
-    loss_function: Literal["nll", "mse"] = "mse"
+    loss_function: Literal["nll", "mse"] = "nll"
     """distillation loss: the student's NLL of the teacher's action (the paper), or the squared
     error of the two mean actions (see DistillationLoss)"""
     return_to_go: Literal["acting", "hindsight"] = "acting"
@@ -110,6 +115,7 @@ class DistillConfig(OptimConfig, RunConfig):
 
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,
+                     "expert_data": False, "loss_function": "nll",
                      "eval_every": 10, "updates_per_round": 100, "batch_size": 256}}
 
 

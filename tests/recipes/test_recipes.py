@@ -128,7 +128,7 @@ def test_distill_files_and_resume(workdir, student):
 def test_distill_ablations(workdir, teacher, encoder):
     out = run_recipe(workdir, "distill", *distill_args("ablation", "--no-weight-copy", "--no-distill",
                                                         "--state-noise", "1e-3", "--no-eval-teacher",
-                                                        "--proprio-pickers", *DATA))
+                                                        "--proprio-pickers"))
     assert "expert imitation" in out.stdout and "weight copy False" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "ablation")
     assert frame["train/loss_nll"].notna().sum() == 2 and "train/loss_distill" not in frame.columns
@@ -153,7 +153,7 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     frame = read_log(workdir / "runs" / "distill" / "offline")
     assert frame["train/loss_distill"].notna().sum() == 2 and not any(c.startswith("rollout/") for c in frame.columns)
     with pytest.raises(pytest.fail.Exception, match="distillation needs rollouts"):
-        run_recipe(workdir, "distill", *distill_args("none", "--episodes-per-round", 0, "--no-eval-teacher"))
+        run_recipe(workdir, "distill", *distill_args("none", "--episodes-per-round", 0, "--no-expert-data", "--no-eval-teacher"))
 
 
 def test_evaluate_student_and_expert(workdir, student):
@@ -234,7 +234,7 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     teacher = " ".join(map(str, online_dt_args("unused")[2:]))
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
                                  "--channels", 4, 4, 4, 4, "--hidden-dim", 16]))
-    student = "--rounds 1 --updates-per-round 2 --episodes-per-round 2 --eval-episodes 2 --batch-size 8 --loss-function mse"
+    student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--eval-episodes", 2, "--batch-size", 8, *DATA]))
     args = ["--name", "pipe", "--trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
             f"--student-args={student}", "--threads", 1]
     run_recipe(workdir, "pipeline", *args, timeout=400)
