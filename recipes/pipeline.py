@@ -4,9 +4,11 @@
     python recipes/pipeline.py --task ClothFoldDiagonalUnpinned --name unpinned
     python recipes/pipeline.py --name cf --resume                # continue after a kill
 
-1. ``recipes/online_dt.py``: the expert dataset and the privileged teacher (offline + online).
-2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images.
-3. ``recipes/distill.py``: the image-only student (weight copy, distillation).
+1. ``recipes/online_dt.py``: the expert dataset and the privileged teacher (by default offline,
+   on states with 1 cm of Gaussian noise: ``--teacher-args``).
+2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images (and, by default,
+   a noisy expert's).
+3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
    25/50/75th percentiles and the ratio to the teacher.
@@ -43,11 +45,12 @@ class PipelineConfig(RunConfig):
     """cloth task"""
     trials: int = 100
     """evaluation episodes per policy (eval split, the same configurations for all three)"""
-    teacher_args: str = "--state-noise 0.01"
-    """extra options for recipes/online_dt.py (default: train the teacher on states with 1 cm of
-    Gaussian noise, so that its weights act on an encoder's estimates, docs/recipes/distill.md)"""
-    encoder_args: str = ""
-    """extra options for recipes/train_encoder.py"""
+    teacher_args: str = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
+    """extra options for recipes/online_dt.py (default: the offline teacher trained on states with
+    1 cm of Gaussian noise, so that its weights act on an encoder's estimates; the arm measured
+    in docs/recipes/distill.md)"""
+    encoder_args: str = "--extra-noise 0.5"
+    """extra options for recipes/train_encoder.py (default: noisy-expert images added to training)"""
     student_args: str = ""
     """extra options for recipes/distill.py"""
 
