@@ -71,6 +71,16 @@ class TrainEncoderConfig(RunConfig):
     the expert alone never visits; collected if missing)"""
     val_fraction: float = 0.1
     """fraction of the episodes held out for validation"""
+    teacher: str = ""
+    """teacher policy file or online_dt run directory: after the epochs, roll out the teacher's
+    weights on this encoder's estimates (the weight-copied student) on the train split, and train
+    on those images too (the states the student visits), --student-rounds times"""
+    student_rounds: int = 2
+    """rounds of (student rollouts, training) with --teacher"""
+    student_episodes: int = 20
+    """student rollouts per round"""
+    student_epochs: int = 5
+    """passes over all training images after each round's rollouts"""
 
 
 def main(argv=None) -> dict:
@@ -81,6 +91,10 @@ def main(argv=None) -> dict:
     from trakdis.objectives import EncoderLoss
 
     spec = task_spec(cfg.task, horizon=cfg.horizon)
+    if cfg.teacher and min(cfg.student_rounds, cfg.student_episodes, cfg.student_epochs) < 0 or \
+            cfg.teacher and cfg.student_rounds > 0 and min(cfg.student_episodes, cfg.student_epochs) < 1:
+        raise ValueError(f"--student-rounds {cfg.student_rounds} >= 0 needs --student-episodes "
+                         f"({cfg.student_episodes}) and --student-epochs ({cfg.student_epochs}) >= 1")
     path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
                           image_size=cfg.image_size, log=run.print, progress=cfg.progress)
     data, lengths = load_trajectories(path, keys=("pixels", "state"))
@@ -120,12 +134,16 @@ def main(argv=None) -> dict:
     run.print(f"encoder: {n_params / 1e6:.2f}M parameters, augmentation {'on' if cfg.aug else 'off'}")
 
     epoch, best = 0, {"val_mae": float("inf"), "state_dict": None, "epoch": -1}
+    rounds_done, student_steps = 0, None
     state = run.resume_state()
     if state is not None:
         encoder.load_state_dict(state["encoder"])
         optim.load_state_dict(state["optim"])
         epoch, best = state["epoch"], state["best"]
+        rounds_done, student_steps = state.get("rounds_done", 0), state.get("student_steps")
         set_rng_state(state["rng"])
+    teacher = _load_teacher(cfg, spec) if cfg.teacher and cfg.student_rounds > 0 else None
+    total_epochs = cfg.epochs + (cfg.student_rounds * cfg.student_epochs if teacher is not None else 0)
 
     def validate() -> dict:
         if val is None:
@@ -139,11 +157,22 @@ def main(argv=None) -> dict:
         loss.train()
         return spec.state_error_cm(torch.cat(errs))
 
-    while epoch < cfg.epochs:
-        order = torch.randperm(train.shape[0])
+    while epoch < total_epochs:
+        if teacher is not None and epoch == cfg.epochs + rounds_done * cfg.student_epochs:
+            # The images the weight-copied student sees: its error there is what the teacher's
+            # weights must act on (docs/recipes/distill.md), and expert images never show them.
+            new, metrics = _student_rollouts(cfg, spec, teacher, encoder, seed=cfg.seed + 5000 + rounds_done)
+            student_steps = new if student_steps is None else torch.cat([student_steps, new])
+            rounds_done += 1
+            run.log(epoch, {f"student/{k}": v for k, v in metrics.items()})
+            run.print(f"student round {rounds_done}/{cfg.student_rounds}: normalized performance "
+                      f"{metrics['normalized_performance']:.3f}, encoder error on its states: corners "
+                      f"{metrics['corners_cm']:.2f} cm, pickers {metrics['pickers_cm']:.2f} cm; +{new.shape[0]} images")
+        epoch_train = train if student_steps is None else torch.cat([train, student_steps])
+        order = torch.randperm(epoch_train.shape[0])
         totals, n = {"loss_encoder": 0.0, "mae": 0.0}, 0
-        for i in progress(range(0, train.shape[0], cfg.batch_size), desc=f"epoch {epoch + 1}"):
-            batch = train[order[i : i + cfg.batch_size]].to(cfg.device)
+        for i in progress(range(0, epoch_train.shape[0], cfg.batch_size), desc=f"epoch {epoch + 1}"):
+            batch = epoch_train[order[i : i + cfg.batch_size]].to(cfg.device)
             out = loss(batch)
             optim.zero_grad(set_to_none=True)
             out["loss_encoder"].backward()
@@ -154,27 +183,67 @@ def main(argv=None) -> dict:
         epoch += 1
         val_err = validate()
         val_mae = val_err["mae"]
-        if val is None or val_mae < best["val_mae"]:
+        # Model selection on the expert validation episodes during the first epochs; after student
+        # rounds the newest encoder is kept (those rounds aim at other states than the validation's).
+        if val is None or val_mae < best["val_mae"] or epoch > cfg.epochs:
             best = {"val_mae": val_mae, "state_dict": copy.deepcopy(encoder.state_dict()), "epoch": epoch,
                     "val_error_cm": {k: v for k, v in val_err.items() if k != "mae"}}
         run.log(epoch, {"train/loss_encoder": totals["loss_encoder"] / n, "train/mae": totals["mae"] / n,
                         **{f"val/{k}": v for k, v in val_err.items()}})
         groups = ", ".join(f"{k.removesuffix('_cm')} {v:.2f} cm" for k, v in val_err.items() if k != "mae")
-        run.print(f"epoch {epoch}/{cfg.epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
+        run.print(f"epoch {epoch}/{total_epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
                   f"train MAE {totals['mae'] / n:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f} ({groups})")
         run.save_checkpoint({"encoder": encoder.state_dict(), "optim": optim.state_dict(), "epoch": epoch,
-                             "best": best, "rng": rng_state()}, step=epoch)
-        if run.should_stop(epoch) and epoch < cfg.epochs:
+                             "best": best, "rounds_done": rounds_done, "student_steps": student_steps,
+                             "rng": rng_state()}, step=epoch)
+        if run.should_stop(epoch) and epoch < total_epochs:
             run.print(f"stopping after epoch {epoch} (--stop-after); continue with --resume")
             return best
     encoder.load_state_dict(best["state_dict"])
     save_encoder(run.dir / "encoder.pt", encoder.cpu(), task=cfg.task,
                  extra={"val_mae": best["val_mae"], "val_error_cm": best.get("val_error_cm"), "epoch": best["epoch"],
-                        "aug": cfg.aug, "dataset": str(path)})
+                        "aug": cfg.aug, "dataset": str(path), "student_rounds": rounds_done})
     run.finish()
     run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
               f"(state units, mean over {spec.state_dim} dims)")
     return best
+
+
+def _load_teacher(cfg: TrainEncoderConfig, spec):
+    from trakdis.utils.checkpoint import CheckpointError
+    from trakdis.utils.policies import load_policy
+
+    teacher = load_policy(cfg.teacher)
+    if teacher.kind != "teacher" or teacher.task != cfg.task or teacher.horizon != cfg.horizon:
+        raise CheckpointError(f"--teacher {cfg.teacher}: a {teacher.kind} for {teacher.task} (horizon "
+                              f"{teacher.horizon}); expected a teacher for {cfg.task} (horizon {cfg.horizon})")
+    return teacher
+
+
+def _student_rollouts(cfg: TrainEncoderConfig, spec, teacher, encoder, *, seed: int):
+    """``(steps, metrics)``: the pixels and true states of ``--student-episodes`` train-split episodes
+    of the teacher's weights acting on ``encoder``'s estimates, and how they went."""
+    from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
+    from trakdis.utils.checkpoint import load_checkpoint
+    from trakdis.utils.evaluation import run_episodes
+    from trakdis.utils.policies import PolicyHandle, StateNormalizer, close_env
+
+    student = make_dt_actor(DTConfig(**load_checkpoint(teacher.source)["dt_config"]), observation_key="state_estimate")
+    copy_teacher_weights(student, teacher.actor)
+    norm = teacher.normalizer
+    handle = PolicyHandle("student", cfg.task, cfg.horizon, actor=student, encoder=copy.deepcopy(encoder).cpu().eval(),
+                          observation_key="state_estimate", target_return=teacher.target_return,
+                          rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
+                          normalizer=None if norm is None else StateNormalizer(norm.loc, norm.scale, keys=("state_estimate",)))
+    env = handle.make_env(num_envs=2, split="train", image_size=cfg.image_size)
+    try:
+        res = run_episodes(env, handle.make_policy(), cfg.student_episodes, max_steps=cfg.horizon, keep_episodes=True,
+                           seed=seed, desc="student rollouts")
+    finally:
+        close_env(env)
+    steps = torch.cat([ep.select("pixels", "state", "state_estimate").to_tensordict() for ep in res.episodes])
+    err = spec.state_error_cm((steps["state_estimate"] - steps["state"]).abs())
+    return steps.exclude("state_estimate"), {"normalized_performance": float(res.final_performance.mean()), **err}
 
 
 if __name__ == "__main__":
