@@ -19,7 +19,7 @@ def test_dataset_buffer_encoder_dt_loss(tmp_path):
     encoder = StateEncoder(spec.state_dim, image_size=32, channels=(8, 8, 8, 8), hidden_dim=16)
     rb = TrajectoryReplayBuffer(
         capacity=4, context_len=3, max_len=5, keys=("state", "pixels", "action"), seed=0,
-        transform=EncoderTransform(encoder, in_key="pixels", out_key="state_estimate"),
+        transform=EncoderTransform(encoder, in_keys=["pixels"], out_keys=["state_estimate"]),
     )
     rb.load_offline(steps, meta["lengths"])
     batch = rb.sample(6)

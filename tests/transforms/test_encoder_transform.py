@@ -30,7 +30,7 @@ def test_single_env_spec_and_values():
 def test_torchrl_mock_env_float_pixels():
     # a TorchRL env that is not ours at all: float channels-last 7x7x3 pixels
     base = ContinuousActionConvMockEnvNumpy()
-    env = TransformedEnv(base, EncoderTransform(TinyEncoder(out_dim=3), out_key="latent"))
+    env = TransformedEnv(base, EncoderTransform(TinyEncoder(out_dim=3), out_keys=["latent"]))
     assert env.observation_spec["latent"].shape == (3,)
     check_env_specs(env, seed=0)
     assert env.rollout(3)["next", "latent"].shape == (3, 3)
@@ -66,7 +66,7 @@ def test_bad_encoder_output_is_reported():
     t = EncoderTransform(torch.nn.Flatten(0))
     with pytest.raises(RuntimeError, match="pixels"):
         t._apply_transform(torch.zeros(2, 4, 4, 3))
-    env = TransformedEnv(make_toy_env(size=16), EncoderTransform(TinyEncoder(), in_key="rgb"))
+    env = TransformedEnv(make_toy_env(size=16), EncoderTransform(TinyEncoder(), in_keys=["rgb"]))
     with pytest.raises(KeyError, match="rgb"):
         env.observation_spec
 

@@ -89,6 +89,43 @@ class TinyEncoder(nn.Module):
         return self.head(x)
 
 
+class LazyEncoder(nn.Module):
+    """An encoder built from lazy modules (``LazyConv2d``, ``LazyLinear``): it takes any channel count
+    and image size, and its shapes are only fixed by the first call."""
+
+    def __init__(self, out_dim: int = 3):
+        super().__init__()
+        self.conv = nn.LazyConv2d(4, 3, stride=2)
+        self.pool = nn.AdaptiveAvgPool2d(2)
+        self.head = nn.LazyLinear(out_dim)
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        x = pixels.float().div(255.0) if pixels.dtype == torch.uint8 else pixels.float()
+        x = torch.relu(self.conv(x.movedim(-1, -3)))
+        return self.head(self.pool(x).flatten(1))
+
+
+def make_gym_mujoco_env(encoder_fn=None, size: int = 64):
+    """TorchRL's ``GymEnv("InvertedPendulum-v5")`` (gymnasium's MuJoCo env, not ours) rendering
+    ``size x size`` pixels, resized to two keys (``"pixels32"``, ``"pixels24"``, two "cameras" of
+    different resolutions) and, when ``encoder_fn`` is given, encoded by ``EncoderTransform`` into
+    ``"estimate32"`` and ``"estimate24"``."""
+    from torchrl.envs import Compose, GymEnv, TransformedEnv
+
+    from trakdis.transforms import EncoderTransform, ImageResize
+
+    base = GymEnv("InvertedPendulum-v5", from_pixels=True, pixels_only=False, width=size, height=size)
+    transforms = [
+        ImageResize(in_keys=["pixels"], out_keys=["pixels32"], size=32),
+        ImageResize(in_keys=["pixels"], out_keys=["pixels24"], size=24),
+    ]
+    if encoder_fn is not None:
+        transforms.append(
+            EncoderTransform(encoder_fn(), in_keys=["pixels32", "pixels24"], out_keys=["estimate32", "estimate24"])
+        )
+    return TransformedEnv(base, Compose(*transforms))
+
+
 def make_toy_env_with(transforms_fn=None, **env_kwargs):
     """Toy env with transforms built by ``transforms_fn()`` applied inside the (worker) process."""
     from torchrl.envs import TransformedEnv

@@ -131,7 +131,7 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
         batched_kwargs["from_pixels"] = True
     env = make_batched_env(task, **batched_kwargs)
     if encoder is not None:
-        transforms.append(EncoderTransform(encoder, in_key=agent_key, out_key="state_estimate"))
+        transforms.append(EncoderTransform(encoder, in_keys=[agent_key], out_keys=["state_estimate"]))
     if state_noise > 0:
         key = "state_estimate" if encoder is not None else "state"
         transforms.append(StateNoise(state_noise, in_keys=[key], seed=noise_seed))
