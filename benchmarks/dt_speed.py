@@ -1,6 +1,6 @@
 """Decision Transformer speed: training-step throughput and per-step acting latency.
 
-Compares ``trakdis.modules`` (SDPA transformer, ``DTLoss``, ``DTActingPolicy``) with TorchRL's
+Compares ``trakdis.modules`` (SDPA transformer, ``MaskedOnlineDTLoss``, ``DTActingPolicy``) with TorchRL's
 ``OnlineDTActor`` (HuggingFace GPT-2 backend) + ``OnlineDTLoss`` at the same size (width, depth,
 heads, MLP width 4x, dropout), at context lengths 5, 30 and 100, on the CPU and on CUDA when
 available. All ratios printed come from this one run.
@@ -39,7 +39,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 from torchrl.objectives import OnlineDTLoss
 
 from trakdis.modules import DTActingPolicy, DTConfig, make_dt_actor
-from trakdis.objectives import DTLoss
+from trakdis.objectives import MaskedOnlineDTLoss
 
 STATE_DIM, ACTION_DIM = 18, 8  # ClothFold
 HAS_TRANSFORMERS = importlib.util.find_spec("transformers") is not None
@@ -190,7 +190,7 @@ def run_device(device, args):
         ours = make_dt_actor(cfg).to(device)
         n_ours = sum(p.numel() for p in ours.parameters())
         td = batch_windows(args.batch, k, device)
-        steps = {"trakdis": TrainStep(DTLoss(ours, lambda_entropy=0.1), ["loss_nll", "loss_entropy"], td)}
+        steps = {"trakdis": TrainStep(MaskedOnlineDTLoss(ours, lambda_entropy=0.1), ["loss_nll", "loss_entropy"], td)}
         theirs = None
         if HAS_TRANSFORMERS:
             torch.manual_seed(0)

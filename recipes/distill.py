@@ -145,7 +145,7 @@ def main(argv=None) -> dict:
     run = Run.start("distill", DistillConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
     from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
-    from trakdis.objectives import DistillationLoss, DTLoss
+    from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
     from trakdis.envs import task_spec
     from trakdis.transforms import StateNoise
 
@@ -170,7 +170,7 @@ def main(argv=None) -> dict:
                                 action_eps=dt_cfg.action_eps, teacher_context=cfg.teacher_context)
         obs_keys = ("state", "state_estimate")
     else:
-        loss = DTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
+        loss = MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
         obs_keys = ("state_estimate",)
     updater = cfg.make_updater(loss)
     # Teacher and student read states standardised with the teacher's statistics (the student's

@@ -155,12 +155,12 @@ def main(argv=None) -> dict:
     cfg = run.cfg
     from trakdis.envs import task_spec
     from trakdis.modules import make_dt_actor
-    from trakdis.objectives import DTLoss
+    from trakdis.objectives import MaskedOnlineDTLoss
 
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     dt_cfg = cfg.model.dt_config(spec.state_dim, spec.action_dim, cfg.horizon)
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
-    loss = DTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
+    loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                   action_eps=dt_cfg.action_eps)
     updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
     n_params = sum(p.numel() for p in actor.parameters())

@@ -3,10 +3,10 @@ EncoderTransform with the project's StateEncoder -> the DT loss (the contract of
 
 import torch
 
-from trakdis.data import TrajectoryReplayBuffer, collect_expert_dataset, load_dataset
+from trakdis.data import TrajectoryReplayBuffer, collect_expert_dataset, load_expert_dataset
 from trakdis.envs import task_spec
 from trakdis.modules import DTConfig, StateEncoder, make_dt_actor
-from trakdis.objectives import DTLoss
+from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.transforms import EncoderTransform
 
 
@@ -14,7 +14,7 @@ def test_dataset_buffer_encoder_dt_loss(tmp_path):
     task = "ClothFoldDiagonalUnpinned"
     spec = task_spec(task)
     path = collect_expert_dataset(tmp_path / "ds", task, num_episodes=2, horizon=5, image_size=32, progress=False, noise=0.1)
-    steps, meta = load_dataset(path)
+    steps, meta = load_expert_dataset(path)
     torch.manual_seed(0)
     encoder = StateEncoder(spec.state_dim, image_size=32, channels=(8, 8, 8, 8), hidden_dim=16)
     rb = TrajectoryReplayBuffer(
@@ -27,7 +27,7 @@ def test_dataset_buffer_encoder_dt_loss(tmp_path):
     assert batch["timestep"].max() < 5 and batch["mask"][:, -1].all()
     cfg = DTConfig(state_dim=spec.state_dim, action_dim=spec.action_dim, embed_dim=16, n_layer=1, n_head=2, context_len=3)
     for key in ("state", "state_estimate"):  # teacher and student observation keys
-        loss = DTLoss(make_dt_actor(cfg, observation_key=key), lambda_entropy=0.1)
+        loss = MaskedOnlineDTLoss(make_dt_actor(cfg, observation_key=key), lambda_entropy=0.1)
         out = loss(batch.clone())
         total = out["loss_nll"] + out["loss_entropy"]
         assert torch.isfinite(total)

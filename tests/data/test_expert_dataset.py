@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from toy_pixel_env import make_toy_collect_env, make_toy_policy
-from trakdis.data import DatasetError, TrajectoryReplayBuffer, collect_expert_dataset, load_dataset, partial_path
+from trakdis.data import DatasetError, TrajectoryReplayBuffer, collect_expert_dataset, load_expert_dataset, partial_path
 
 H = 6
 
@@ -33,7 +33,7 @@ def _check_episodes(steps, lengths):
 
 def test_collect_load_and_format(tmp_path):
     path = _collect(tmp_path / "ds", num_episodes=4)
-    steps, meta = load_dataset(path)
+    steps, meta = load_expert_dataset(path)
     assert steps.batch_size == (4, H) and meta["lengths"].shape == (4,)
     assert meta["format"] == "trakdis-dataset" and meta["version"] == 1 and meta["horizon"] == H
     assert steps["pixels"].dtype == torch.uint8 and steps["pixels"].shape == (4, H, 8, 8, 3)
@@ -52,7 +52,7 @@ def test_collect_load_and_format(tmp_path):
 
 
 def test_resume_after_kill_equals_uninterrupted(tmp_path):
-    ref_steps, ref_meta = load_dataset(_collect(tmp_path / "ref", num_episodes=5))
+    ref_steps, ref_meta = load_expert_dataset(_collect(tmp_path / "ref", num_episodes=5))
 
     seen = []
 
@@ -66,13 +66,13 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
         _collect(path, num_episodes=5, callback=kill_after_two)
     assert not path.exists() and partial_path(path).exists()
     with pytest.raises(DatasetError, match="unfinished collection \\(2 episodes"):
-        load_dataset(path)
+        load_expert_dataset(path)
     with pytest.raises(DatasetError, match="other settings"):
         _collect(path, num_episodes=5, seed=1)
 
     _collect(path, num_episodes=5, callback=lambda d, t: seen.append(d))
     assert seen == [1, 2, 3, 4, 5]  # resumed at episode 3, nothing recollected
-    steps, meta = load_dataset(path)
+    steps, meta = load_expert_dataset(path)
     assert torch.equal(meta["lengths"], ref_meta["lengths"])
     assert (steps == ref_steps).all()
     assert meta["stats"] == ref_meta["stats"]
@@ -87,7 +87,7 @@ def test_parallel_workers(tmp_path, monkeypatch):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        steps, meta = load_dataset(_collect(tmp_path / "par", num_episodes=3, num_workers=2, mp_start_method="fork"))
+        steps, meta = load_expert_dataset(_collect(tmp_path / "par", num_episodes=3, num_workers=2, mp_start_method="fork"))
         # TorchRL's ParallelEnv shutdown raises the thread count; the collection puts it back
         assert torch.get_num_threads() == 1
     finally:
@@ -101,38 +101,38 @@ def test_parallel_workers(tmp_path, monkeypatch):
 
 def test_bad_datasets(tmp_path):
     with pytest.raises(DatasetError, match="no dataset at .*missing"):
-        load_dataset(tmp_path / "missing")
+        load_expert_dataset(tmp_path / "missing")
     (tmp_path / "empty").mkdir()
     with pytest.raises(DatasetError, match="no meta.json"):
-        load_dataset(tmp_path / "empty")
+        load_expert_dataset(tmp_path / "empty")
     path = _collect(tmp_path / "ds", num_episodes=1)
     meta = json.loads((path / "meta.json").read_text())
     (path / "meta.json").write_text(json.dumps(dict(meta, version=99)))
     with pytest.raises(DatasetError, match="version 99"):
-        load_dataset(path)
+        load_expert_dataset(path)
     (path / "meta.json").write_text(json.dumps(dict(meta, format="other")))
     with pytest.raises(DatasetError, match="format 'other'"):
-        load_dataset(path)
+        load_expert_dataset(path)
     (path / "meta.json").write_text(json.dumps(dict(meta, horizon=H + 1)))
     with pytest.raises(DatasetError, match="does not match meta.json"):
-        load_dataset(path)
+        load_expert_dataset(path)
     (path / "meta.json").write_text("{not json")
     with pytest.raises(DatasetError, match="not valid JSON"):
-        load_dataset(path)
+        load_expert_dataset(path)
 
 
 def test_overwrite_replaces_only_when_complete(tmp_path):
     path = _collect(tmp_path / "ds", num_episodes=2)
-    old_lengths = load_dataset(path)[1]["lengths"]
+    old_lengths = load_expert_dataset(path)[1]["lengths"]
 
     def kill(done, total):
         raise _Killed
 
     with pytest.raises(_Killed):
         _collect(path, num_episodes=3, seed=5, overwrite=True, callback=kill)
-    assert torch.equal(load_dataset(path)[1]["lengths"], old_lengths)  # the old dataset is untouched
+    assert torch.equal(load_expert_dataset(path)[1]["lengths"], old_lengths)  # the old dataset is untouched
     _collect(path, num_episodes=3, seed=5, overwrite=True)
-    assert load_dataset(path)[1]["num_episodes"] == 3 and not partial_path(path).exists()
+    assert load_expert_dataset(path)[1]["num_episodes"] == 3 and not partial_path(path).exists()
 
 
 def test_real_cloth_env_tiny(tmp_path):
@@ -140,7 +140,7 @@ def test_real_cloth_env_tiny(tmp_path):
     path = collect_expert_dataset(
         tmp_path / "cloth", "ClothFoldDiagonalPinned", num_episodes=2, horizon=4, image_size=16, progress=False
     )
-    steps, meta = load_dataset(path)
+    steps, meta = load_expert_dataset(path)
     assert steps.batch_size == (2, 4) and steps["pixels"].shape == (2, 4, 16, 16, 3)
     assert steps["state"].shape == (2, 4, 15) and steps["action"].shape == (2, 4, 4)
     assert steps["truncated"][:, -1].all() and (meta["lengths"] == 4).all()
@@ -181,8 +181,8 @@ def test_resume_after_sigkill(tmp_path):
     seen = []
     _collect(path, num_episodes=5, callback=lambda d, t: seen.append(d))
     assert seen == [4, 5]
-    ref_steps, ref_meta = load_dataset(_collect(tmp_path / "ref", num_episodes=5))
-    steps, meta = load_dataset(path)
+    ref_steps, ref_meta = load_expert_dataset(_collect(tmp_path / "ref", num_episodes=5))
+    steps, meta = load_expert_dataset(path)
     assert torch.equal(meta["lengths"], ref_meta["lengths"]) and (steps == ref_steps).all()
 
 
@@ -200,18 +200,18 @@ def test_file_of_the_wrong_size_is_refused_and_left_as_it_is(tmp_path, name, cut
     before = _files(path)
     with pytest.raises(DatasetError, match=rf"{name.split('/')[-1]} does not match meta.json: it holds "
                                            rf"{len(data) - cut} bytes.*{len(data)} bytes \(the file is "):
-        load_dataset(path)
+        load_expert_dataset(path)
     assert _files(path) == before  # nothing padded or rewritten
 
 
 def test_loaded_dataset_is_read_only_on_disk(tmp_path):
     path = _collect(tmp_path / "ds", num_episodes=2)
     before = _files(path)
-    steps, meta = load_dataset(path)
+    steps, meta = load_expert_dataset(path)
     steps["state"][0] = 123.0  # stays in this process's memory
     steps["done"][:] = True
     assert _files(path) == before
-    again, _ = load_dataset(path)
+    again, _ = load_expert_dataset(path)
     assert (again["state"][0] != 123.0).all() and torch.equal(again["step_count"], steps["step_count"])
 
 
@@ -234,10 +234,10 @@ def test_malformed_meta_json_names_file_and_key(tmp_path):
     for label, (content, message) in bad.items():
         (path / "meta.json").write_text(json.dumps(content))
         with pytest.raises(DatasetError, match="meta.json.*" + message.replace("(", r"\(").replace(".", r"\.")):
-            load_dataset(path)
+            load_expert_dataset(path)
     (path / "meta.json").write_text(json.dumps(dict(meta, keys={k: v for k, v in meta["keys"].items() if k != "action"})))
     with pytest.raises(DatasetError, match=r"lacks the per-step keys \['action'\]"):
-        load_dataset(path)
+        load_expert_dataset(path)
 
 
 def test_second_collection_into_the_same_path_is_refused(tmp_path):
@@ -261,7 +261,7 @@ def test_second_collection_into_the_same_path_is_refused(tmp_path):
         assert _files(partial_path(path)) == before and not path.exists()
     finally:
         os.close(fd)
-    assert load_dataset(_collect(path, num_episodes=3))[0].batch_size == (3, H)  # free again: it resumes
+    assert load_expert_dataset(_collect(path, num_episodes=3))[0].batch_size == (3, H)  # free again: it resumes
 
 
 def test_no_progress_env_var_wins_over_progress_true(tmp_path, monkeypatch, capsys):

@@ -4,7 +4,7 @@ from dt_windows import random_window
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import TanhNormal
 
-from trakdis.modules import CausalTransformer, DecisionTransformer, DTActor, DTConfig, TransformerConfig, make_dt_actor
+from trakdis.modules import CausalTransformer, DTBackbone, StochasticDTActor, DTConfig, TransformerConfig, make_dt_actor
 
 S, A = 5, 3
 
@@ -41,7 +41,7 @@ def test_config_presets_and_validation():
 
 def test_shapes_and_extra_batch_dims():
     torch.manual_seed(0)
-    dt = DecisionTransformer(small_config()).eval()
+    dt = DTBackbone(small_config()).eval()
     td = window()
     h = run(dt, td)
     assert h.shape == (4, 6, 32)
@@ -52,7 +52,7 @@ def test_shapes_and_extra_batch_dims():
 
 
 def test_shape_and_timestep_errors_name_the_key():
-    dt = DecisionTransformer(small_config(max_timestep=10)).eval()
+    dt = DTBackbone(small_config(max_timestep=10)).eval()
     td = window()
     with pytest.raises(ValueError, match="'action' has shape"):
         dt(td["observation"], td["action"][..., :2], td["return_to_go"], td["timestep"], td["mask"])
@@ -70,7 +70,7 @@ def test_shape_and_timestep_errors_name_the_key():
 
 def test_causality_future_tokens_never_change_earlier_predictions():
     torch.manual_seed(0)
-    dt = DecisionTransformer(small_config()).eval()
+    dt = DTBackbone(small_config()).eval()
     td = window()
     h = run(dt, td)
     for t in range(6):
@@ -87,7 +87,7 @@ def test_causality_future_tokens_never_change_earlier_predictions():
 
 def test_past_tokens_do_change_predictions():
     torch.manual_seed(0)
-    dt = DecisionTransformer(small_config()).eval()
+    dt = DTBackbone(small_config()).eval()
     td = window()
     td2 = td.clone()
     td2["action"][:, 2] += 0.5
@@ -96,7 +96,7 @@ def test_past_tokens_do_change_predictions():
 
 def test_padding_content_never_changes_valid_outputs():
     torch.manual_seed(0)
-    dt = DecisionTransformer(small_config()).eval()
+    dt = DTBackbone(small_config()).eval()
     pad = [0, 2, 5, 3]
     td = window(pad=pad)
     h = run(dt, td)
@@ -124,7 +124,7 @@ def test_all_true_mask_fast_path_matches_explicit_mask():
 def test_actor_head_bounds_and_distribution():
     torch.manual_seed(0)
     cfg = small_config()
-    net = DTActor(cfg).eval()
+    net = StochasticDTActor(cfg).eval()
     td = window()
     with torch.no_grad():
         net.head_log_std.bias.fill_(100.0)
@@ -165,7 +165,7 @@ def test_training_mode_with_dropout_keeps_causality_and_padding_invariance():
     # same seed -> same dropout masks; the chunked CPU attention path must still be causal and
     # blind to padded content (the eval-mode tests above go through SDPA)
     torch.manual_seed(0)
-    dt = DecisionTransformer(small_config(context_len=40, dropout=0.2, attn_dropout=0.3)).train()
+    dt = DTBackbone(small_config(context_len=40, dropout=0.2, attn_dropout=0.3)).train()
     pad = [0, 7, 39, 20]
     td = window(k=40, pad=pad)
     torch.manual_seed(1)

@@ -4,7 +4,7 @@ from dt_windows import random_window
 from torchrl.objectives import OnlineDTLoss
 
 from trakdis.modules import DTConfig, make_dt_actor
-from trakdis.objectives import DTLoss
+from trakdis.objectives import MaskedOnlineDTLoss
 
 S, A, B, K = 5, 3, 4, 6
 
@@ -22,7 +22,7 @@ def window(pad=(0, 0, 0, 0), seed=0):
 
 def test_matches_torchrl_online_dt_loss_fixed_temperature(actor):
     td = window()
-    ours = DTLoss(actor, lambda_entropy=0.1)
+    ours = MaskedOnlineDTLoss(actor, lambda_entropy=0.1)
     ref = OnlineDTLoss(actor, alpha_init=0.1, fixed_alpha=True)
     torch.manual_seed(3)
     out = ours(td.clone())
@@ -40,7 +40,7 @@ def test_padding_is_masked_like_torchrl_per_step_losses(actor):
     td = window(pad=(0, 2, 5, 3))
     ref = OnlineDTLoss(actor, alpha_init=0.1, fixed_alpha=True, reduction="none", scalar_output_mode="exclude")
     torch.manual_seed(4)
-    out = DTLoss(actor, lambda_entropy=0.1)(td.clone())
+    out = MaskedOnlineDTLoss(actor, lambda_entropy=0.1)(td.clone())
     torch.manual_seed(4)
     out_ref = ref(td.clone())
     m = td["mask"]
@@ -52,14 +52,14 @@ def test_padding_is_masked_like_torchrl_per_step_losses(actor):
     td2["action"][~m] = 5.0
     td2["return_to_go"][~m] = -1e4
     torch.manual_seed(4)
-    out2 = DTLoss(actor, lambda_entropy=0.1)(td2)
+    out2 = MaskedOnlineDTLoss(actor, lambda_entropy=0.1)(td2)
     torch.testing.assert_close(out2["loss_nll"], out["loss_nll"], rtol=0, atol=1e-5)
     torch.testing.assert_close(out2["loss_entropy"], out["loss_entropy"], rtol=0, atol=1e-5)
 
 
 def test_learned_temperature(actor):
     td = window()
-    loss = DTLoss(actor, lambda_entropy=0.2, learn_temperature=True)
+    loss = MaskedOnlineDTLoss(actor, lambda_entropy=0.2, learn_temperature=True)
     assert loss.target_entropy.item() == -A
     ref = OnlineDTLoss(actor, alpha_init=0.2)
     torch.manual_seed(5)
@@ -78,12 +78,12 @@ def test_learned_temperature(actor):
     grads = [p.grad for p in loss.actor_network_params.values(True, True)]
     assert all(g is not None for g in grads) and sum(g.abs().sum() for g in grads) > 0
     assert set(loss.parameters()) == set(loss.actor_network_params.values(True, True)) | {loss.log_alpha}
-    assert DTLoss(actor, target_entropy=-1.5).target_entropy.item() == -1.5
+    assert MaskedOnlineDTLoss(actor, target_entropy=-1.5).target_entropy.item() == -1.5
 
 
 def test_training_reduces_nll(actor):
     td = window()
-    loss = DTLoss(actor, lambda_entropy=0.0)
+    loss = MaskedOnlineDTLoss(actor, lambda_entropy=0.0)
     opt = torch.optim.Adam(loss.parameters(), lr=3e-3)
     first = None
     for _ in range(30):
@@ -97,7 +97,7 @@ def test_training_reduces_nll(actor):
 
 def test_set_keys_and_errors(actor):
     td = window()
-    loss = DTLoss(actor)
+    loss = MaskedOnlineDTLoss(actor)
     td["target"] = torch.rand(B, K, A) * 1.8 - 0.9
     td["valid"] = td["mask"].clone()
     td["valid"][:, :3] = False
@@ -115,15 +115,15 @@ def test_set_keys_and_errors(actor):
     td_grad = window()
     td_grad["action"].requires_grad_()
     with pytest.raises(RuntimeError, match="must not require grad"):
-        DTLoss(actor)(td_grad)
+        MaskedOnlineDTLoss(actor)(td_grad)
     with pytest.raises(ValueError, match="lambda_entropy"):
-        DTLoss(actor, lambda_entropy=0.0, learn_temperature=True)
+        MaskedOnlineDTLoss(actor, lambda_entropy=0.0, learn_temperature=True)
 
 
 def test_targets_at_the_bounds_stay_finite(actor):
     td = window()
     td["action"][..., -1] = torch.where(torch.rand(B, K) > 0.5, 1.0, -1.0)  # e.g. pick open/close
-    out = DTLoss(actor)(td)
+    out = MaskedOnlineDTLoss(actor)(td)
     assert torch.isfinite(out["loss_nll"])
 
 
@@ -133,8 +133,8 @@ def test_closed_form_tanh_normal_equals_the_distribution_path(actor):
     from trakdis.objectives.dt_loss import tanh_normal_log_prob, tanh_normal_rsample_log_prob
 
     td = window(pad=(0, 2, 5, 3))
-    fast = DTLoss(actor, lambda_entropy=0.1)
-    generic = DTLoss(actor, lambda_entropy=0.1)
+    fast = MaskedOnlineDTLoss(actor, lambda_entropy=0.1)
+    generic = MaskedOnlineDTLoss(actor, lambda_entropy=0.1)
     assert fast._tanh_normal_keys == ("loc", "scale")
     generic._tanh_normal_keys = None  # force TanhNormal objects (the path for other distributions)
     outs, grads = [], []
@@ -164,16 +164,16 @@ def test_other_distributions_use_the_generic_path():
     from torchrl.data import Bounded
     from torchrl.modules import ProbabilisticActor, TanhNormal
 
-    from trakdis.modules.decision_transformer import DTActor
+    from trakdis.modules.decision_transformer import StochasticDTActor
 
     torch.manual_seed(0)
     cfg = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
-    module = TensorDictModule(DTActor(cfg), in_keys=["observation", "action", "return_to_go", "timestep", "mask"], out_keys=["loc", "scale"])
+    module = TensorDictModule(StochasticDTActor(cfg), in_keys=["observation", "action", "return_to_go", "timestep", "mask"], out_keys=["loc", "scale"])
     actor = ProbabilisticActor(
         module, in_keys=["loc", "scale"], out_keys=["action"], spec=Bounded(-2.0, 2.0, shape=(A,)),
         distribution_class=TanhNormal, distribution_kwargs={"low": -2.0, "high": 2.0},
     )
-    loss = DTLoss(actor, lambda_entropy=0.1, action_eps=0.0)
+    loss = MaskedOnlineDTLoss(actor, lambda_entropy=0.1, action_eps=0.0)
     assert loss._tanh_normal_keys is None
     td = window()
     torch.manual_seed(3)
@@ -204,9 +204,31 @@ def test_own_saturated_mean_actions_as_targets(loc_bound):
     if loc_bound:
         assert out["loc"].max() < loc_bound
     td["action"] = out["loc"].tanh()  # the mean action, as stored by a rollout
-    loss = DTLoss(actor, lambda_entropy=0.0, action_eps=cfg.action_eps)
+    loss = MaskedOnlineDTLoss(actor, lambda_entropy=0.0, action_eps=cfg.action_eps)
     nll = float(loss(td)["loss_nll"])
     if loc_bound:
         assert nll < 0  # the own mean action is the mode: a high likelihood, not a penalty
     else:
         assert nll > 1e3
+
+
+def test_is_torchrl_online_dt_loss_with_zero_or_exact_fixed_weight(actor):
+    loss = MaskedOnlineDTLoss(actor, lambda_entropy=0.0)
+    assert isinstance(loss, OnlineDTLoss) and loss.loss_mask_key == "mask"
+    out = loss(window(pad=(0, 2, 5, 3)))
+    assert out["alpha"].item() == 0.0 and out["loss_entropy"].item() == 0.0 and "loss_alpha" not in out.keys()
+    assert torch.isfinite(out["entropy"])
+    # the fixed weight is used exactly (OnlineDTLoss's exp(log(0.1)) is 1 ulp off in float32)
+    assert MaskedOnlineDTLoss(actor, lambda_entropy=0.1).alpha.item() == torch.tensor(0.1).item()
+    loss.set_keys(mask="valid")
+    assert loss.loss_mask_key == "valid" and "valid" in loss.in_keys
+
+
+def test_loads_checkpoints_of_the_former_dt_loss(actor):
+    for kw in (dict(lambda_entropy=0.1), dict(lambda_entropy=0.2, learn_temperature=True)):
+        loss = MaskedOnlineDTLoss(actor, **kw)
+        state = loss.state_dict()
+        old = {k: v for k, v in state.items() if k not in ("alpha_init",) and not (k == "log_alpha" and not loss.learn_temperature)}
+        fresh = MaskedOnlineDTLoss(actor, **kw)
+        fresh.load_state_dict(old)  # strict: the keys OnlineDTLoss adds are filled in
+        torch.testing.assert_close(fresh.alpha, loss.alpha)

@@ -3,7 +3,7 @@ import pandas as pd
 import pytest
 import torch
 
-from trakdis.utils.logger import CSVLogger, latest_run_dir, make_run_dir
+from trakdis.utils.logger import WideCSVLogger, latest_run_dir, make_run_dir
 from trakdis.utils.config import save_config
 from dataclasses import dataclass
 
@@ -14,7 +14,7 @@ class C:
 
 
 def test_rows_merge_and_columns(tmp_path):
-    log = CSVLogger(tmp_path / "log.csv")
+    log = WideCSVLogger(tmp_path / "log.csv")
     log.log(0, {"train/loss_nll": torch.tensor(1.5)})
     log.log(0, {"eval/normalized_performance": np.float32(0.25)})
     log.log(10, {"train/loss_nll": 0.5})
@@ -29,13 +29,13 @@ def test_rows_merge_and_columns(tmp_path):
 
 def test_resume_truncates_and_appends(tmp_path):
     p = tmp_path / "log.csv"
-    log = CSVLogger(p)
+    log = WideCSVLogger(p)
     for s in range(5):
         log.log(s, {"train/x": s})
     log.close()
     with pytest.raises(FileExistsError):
-        CSVLogger(p)
-    log = CSVLogger(p, resume=True, truncate_after=2)  # checkpoint was at step 2
+        WideCSVLogger(p)
+    log = WideCSVLogger(p, resume=True, truncate_after=2)  # checkpoint was at step 2
     log.log(3, {"train/x": 30, "eval/y": 1})
     log.close()
     frame = pd.read_csv(p)
@@ -44,7 +44,7 @@ def test_resume_truncates_and_appends(tmp_path):
 
 
 def test_non_scalar_metric_named(tmp_path):
-    log = CSVLogger(tmp_path / "log.csv")
+    log = WideCSVLogger(tmp_path / "log.csv")
     with pytest.raises(ValueError, match="train/vec"):
         log.log(0, {"train/vec": torch.ones(3)})
 

@@ -3,7 +3,7 @@ import torch
 from tensordict import TensorDict
 
 from trakdis.modules import StateEncoder, make_dt_actor
-from trakdis.objectives import DTLoss
+from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.utils.checkpoint import CheckpointError, save_checkpoint
 from trakdis.utils.policies import NormalizedEncoder, load_encoder, load_policy, save_encoder, save_policy
 from trakdis.utils.training import ModelConfig, Updater, episode_to_trajectory, mean_metrics
@@ -28,7 +28,7 @@ def window(B=8, K=4):
 def test_updater_reduces_dt_loss_and_roundtrips():
     torch.manual_seed(0)
     cfg, actor = tiny_actor()
-    up = Updater(DTLoss(actor, lambda_entropy=0.0), lr=3e-3, warmup_steps=1)
+    up = Updater(MaskedOnlineDTLoss(actor, lambda_entropy=0.0), lr=3e-3, warmup_steps=1)
     batch = window()
     first = up.step(batch)
     for _ in range(60):
@@ -36,7 +36,7 @@ def test_updater_reduces_dt_loss_and_roundtrips():
     assert last["loss_nll"] < first["loss_nll"] - 0.5
     assert {"loss_nll", "loss_entropy", "lr", "grad_norm"} <= set(last)
     _, actor2 = tiny_actor()
-    up2 = Updater(DTLoss(actor2, lambda_entropy=0.0), lr=3e-3, warmup_steps=1)
+    up2 = Updater(MaskedOnlineDTLoss(actor2, lambda_entropy=0.0), lr=3e-3, warmup_steps=1)
     up2.load_state_dict(up.state_dict())
     assert up2.updates == 61
     assert torch.equal(next(iter(actor2.parameters())), next(iter(actor.parameters())))
@@ -45,7 +45,7 @@ def test_updater_reduces_dt_loss_and_roundtrips():
 
 def test_updater_rejects_non_finite():
     _, actor = tiny_actor()
-    up = Updater(DTLoss(actor), lr=1e-3)
+    up = Updater(MaskedOnlineDTLoss(actor), lr=1e-3)
     batch = window()
     batch["state"][0, 0, 0] = float("nan")
     with pytest.raises(FloatingPointError, match="non-finite loss"):

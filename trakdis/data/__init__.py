@@ -8,7 +8,7 @@ from .dataset import (
     DATASET_VERSION,
     DatasetError,
     collect_expert_dataset,
-    load_dataset,
+    load_expert_dataset,
     partial_path,
     read_meta,
 )
@@ -20,7 +20,7 @@ __all__ = [
     "TrajectoryReplayBuffer",
     "WindowSampler",
     "collect_expert_dataset",
-    "load_dataset",
+    "load_expert_dataset",
     "partial_path",
     "read_meta",
 ]

@@ -15,7 +15,7 @@ since each chunk's env and policy seeds derive from ``(seed, chunk index)`` only
 an uninterrupted collection. One collection at a time writes into ``<path>.partial/`` (an exclusive
 ``fcntl.flock`` on the directory); a second one is refused.
 
-:func:`load_dataset` reads any dataset as untrusted input: ``meta.json`` is validated, every data
+:func:`load_expert_dataset` reads any dataset as untrusted input: ``meta.json`` is validated, every data
 file's size must equal what its ``meta.json`` shape and dtype give, and the files are mapped
 read-only (copy-on-write: the file is opened read-only, in-memory writes never reach the disk, and
 no pickle is ever read). Only collection (writing its own ``.partial`` directory) opens them for writing.
@@ -44,7 +44,7 @@ __all__ = [
     "DATASET_VERSION",
     "DatasetError",
     "collect_expert_dataset",
-    "load_dataset",
+    "load_expert_dataset",
     "partial_path",
     "read_meta",
 ]
@@ -403,7 +403,7 @@ _KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 def _meta_error(meta_file: Path, key: str, problem: str) -> DatasetError:
-    return DatasetError(f"load_dataset: {meta_file}: {key!r} {problem}")
+    return DatasetError(f"load_expert_dataset: {meta_file}: {key!r} {problem}")
 
 
 def read_meta(path: str | os.PathLike) -> dict:
@@ -413,19 +413,19 @@ def read_meta(path: str | os.PathLike) -> dict:
     path = Path(path)
     meta_file = path / "meta.json"
     if not meta_file.exists():
-        raise DatasetError(f"load_dataset: {path} has no meta.json: not a trakdis dataset, or an unfinished one")
+        raise DatasetError(f"load_expert_dataset: {path} has no meta.json: not a trakdis dataset, or an unfinished one")
     try:
         meta = json.loads(meta_file.read_text())
     except (ValueError, OSError) as err:
-        raise DatasetError(f"load_dataset: {meta_file} is not valid JSON ({err})") from err
+        raise DatasetError(f"load_expert_dataset: {meta_file} is not valid JSON ({err})") from err
     if not isinstance(meta, dict):
-        raise DatasetError(f"load_dataset: {meta_file} holds a JSON {type(meta).__name__}, expected an object "
+        raise DatasetError(f"load_expert_dataset: {meta_file} holds a JSON {type(meta).__name__}, expected an object "
                            f"with 'format', 'version', 'task', 'num_episodes', 'horizon' and 'keys'")
     if meta.get("format") != DATASET_FORMAT:
-        raise DatasetError(f"load_dataset: {meta_file} has format {meta.get('format')!r}, expected {DATASET_FORMAT!r}")
+        raise DatasetError(f"load_expert_dataset: {meta_file} has format {meta.get('format')!r}, expected {DATASET_FORMAT!r}")
     if meta.get("version") != DATASET_VERSION:
         raise DatasetError(
-            f"load_dataset: {path} is version {meta.get('version')!r} of the format; this trakdis reads version "
+            f"load_expert_dataset: {path} is version {meta.get('version')!r} of the format; this trakdis reads version "
             f"{DATASET_VERSION}; recollect it with collect_expert_dataset"
         )
     for key in ("task", "num_episodes", "horizon", "keys"):
@@ -463,11 +463,11 @@ def _open_readonly(file: Path, dtype: torch.dtype, shape: tuple[int, ...], what:
     numel = math.prod(shape)
     expected = numel * torch.empty((), dtype=dtype).element_size()
     if not file.is_file():
-        raise DatasetError(f"load_dataset: {file} ({what}) is missing")
+        raise DatasetError(f"load_expert_dataset: {file} ({what}) is missing")
     size = file.stat().st_size
     if size != expected:
         raise DatasetError(
-            f"load_dataset: {file} does not match meta.json: it holds {size} bytes, but {what} is "
+            f"load_expert_dataset: {file} does not match meta.json: it holds {size} bytes, but {what} is "
             f"{str(dtype).replace('torch.', '')} {list(shape)} = {expected} bytes "
             f"(the file is {'truncated' if size < expected else 'too long'})"
         )
@@ -476,7 +476,7 @@ def _open_readonly(file: Path, dtype: torch.dtype, shape: tuple[int, ...], what:
     return torch.from_file(str(file), shared=False, size=numel, dtype=dtype).view(shape)
 
 
-def load_dataset(path: str | os.PathLike) -> tuple[TensorDict, dict]:
+def load_expert_dataset(path: str | os.PathLike) -> tuple[TensorDict, dict]:
     """Opens a dataset written by :func:`collect_expert_dataset`, read-only.
 
     Returns:
@@ -500,14 +500,14 @@ def load_dataset(path: str | os.PathLike) -> tuple[TensorDict, dict]:
             except (OSError, ValueError, KeyError, TypeError):
                 pass
             raise DatasetError(
-                f"load_dataset: {path} does not exist, but {part} holds an unfinished collection "
+                f"load_expert_dataset: {path} does not exist, but {part} holds an unfinished collection "
                 f"({done} episodes written); rerun collect_expert_dataset with the same arguments to finish it"
             )
-        raise DatasetError(f"load_dataset: no dataset at {path} (directory does not exist)")
+        raise DatasetError(f"load_expert_dataset: no dataset at {path} (directory does not exist)")
     meta = read_meta(path)
     missing = [k for k in REQUIRED_KEYS if k not in meta["keys"]]
     if missing:
-        raise DatasetError(f"load_dataset: {path} lacks the per-step keys {missing}")
+        raise DatasetError(f"load_expert_dataset: {path} lacks the per-step keys {missing}")
     n, horizon = meta["num_episodes"], meta["horizon"]
     data = path / "data"
     # Files are read by the layout collect_expert_dataset writes (TensorDict.memmap: one raw file per

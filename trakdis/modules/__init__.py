@@ -1,6 +1,6 @@
 """Models: causal transformer, Decision Transformer actor, acting wrapper, CNN state encoder."""
 from trakdis.modules.acting import DTActingPolicy
-from trakdis.modules.decision_transformer import DecisionTransformer, DTActor, DTConfig, find_dt_actor, make_dt_actor
+from trakdis.modules.decision_transformer import DTBackbone, DTConfig, StochasticDTActor, find_dt_actor, make_dt_actor
 from trakdis.modules.encoder import SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 from trakdis.modules.weights import copy_teacher_weights
@@ -8,12 +8,12 @@ from trakdis.modules.weights import copy_teacher_weights
 __all__ = [
     "CausalTransformer",
     "DTActingPolicy",
-    "DTActor",
+    "DTBackbone",
     "DTConfig",
-    "DecisionTransformer",
     "KVCache",
     "SpatialSoftArgmax",
     "StateEncoder",
+    "StochasticDTActor",
     "TransformerConfig",
     "coordinate_channels",
     "copy_teacher_weights",

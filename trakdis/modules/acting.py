@@ -13,7 +13,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictModule, TensorDictModule, TensorDictModuleBase
 from torch import nn
 
-from trakdis.modules.decision_transformer import TOKENS_PER_STEP, DTActor, find_dt_actor
+from trakdis.modules.decision_transformer import TOKENS_PER_STEP, StochasticDTActor, find_dt_actor
 from trakdis.modules.transformer import KVCache
 
 __all__ = ["DTActingPolicy"]
@@ -37,7 +37,7 @@ class DTActingPolicy(TensorDictModuleBase):
 
     Args:
         actor: an actor from :func:`~trakdis.modules.make_dt_actor` (or any module containing one
-            ``DTActor`` wrapped in a ``TensorDictModule`` and a probabilistic module).
+            ``StochasticDTActor`` wrapped in a ``TensorDictModule`` and a probabilistic module).
         context_len: K; defaults to the actor's ``DTConfig.context_len``.
         mode: how each step is computed; per-step cost never grows with the number of steps taken.
 
@@ -70,7 +70,7 @@ class DTActingPolicy(TensorDictModuleBase):
         if mode not in _MODES:
             raise ValueError(f"mode={mode!r}; expected one of {_MODES}")
         self.actor = actor
-        self.dt: DTActor = find_dt_actor(actor)
+        self.dt: StochasticDTActor = find_dt_actor(actor)
         tdms = [m for m in actor.modules() if isinstance(m, TensorDictModule) and m.module is self.dt]
         probs = [m for m in actor.modules() if isinstance(m, ProbabilisticTensorDictModule)]
         if len(probs) != 1:

@@ -22,7 +22,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from trakdis.modules.transformer import CausalTransformer, Dropout, KVCache, TransformerConfig
 
-__all__ = ["DTConfig", "DecisionTransformer", "DTActor", "make_dt_actor", "find_dt_actor"]
+__all__ = ["DTConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor"]
 
 TOKENS_PER_STEP = 3  # (return-to-go, state, action)
 
@@ -82,7 +82,7 @@ class DTConfig:
     @property
     def action_eps(self) -> float:
         """The clamp of target actions that matches :attr:`loc_bound` (``1 - tanh(loc_bound)``;
-        ``1e-6`` when unbounded): pass it as ``DTLoss(action_eps=...)``."""
+        ``1e-6`` when unbounded): pass it as ``MaskedOnlineDTLoss(action_eps=...)``."""
         return 1.0 - math.tanh(self.loc_bound) if self.loc_bound > 0 else 1e-6
 
     @classmethod
@@ -107,8 +107,11 @@ class DTConfig:
         return dataclasses.asdict(self)
 
 
-class DecisionTransformer(nn.Module):
+class DTBackbone(nn.Module):
     """Decision Transformer trunk: returns the hidden state at each state token.
+
+    Named apart from TorchRL's ``DecisionTransformer`` (a HuggingFace GPT-2 trunk without timestep
+    embedding, padding mask or cache), which it does not replace one-for-one.
 
     ``forward(observation [B, K, S], action [B, K, A], return_to_go [B, K, 1], timestep [B, K]
     int64, mask [B, K] bool or None) -> [B, K, embed_dim]``. Extra leading batch dims are
@@ -149,20 +152,20 @@ class DecisionTransformer(nn.Module):
         for name, (tensor, shape) in expected.items():
             if tuple(tensor.shape) != tuple(shape):
                 raise ValueError(
-                    f"DecisionTransformer: {name!r} has shape {tuple(tensor.shape)}, expected {tuple(shape)} "
+                    f"DTBackbone: {name!r} has shape {tuple(tensor.shape)}, expected {tuple(shape)} "
                     f"(state_dim={c.state_dim}, action_dim={c.action_dim})"
                 )
         if 0 in tuple(lead):
             raise ValueError(
-                f"DecisionTransformer: empty input: 'observation' has shape {tuple(observation.shape)}; at least one "
+                f"DTBackbone: empty input: 'observation' has shape {tuple(observation.shape)}; at least one "
                 f"window of at least one step is needed")
         for name in ("observation", "action", "return_to_go"):
             if not expected[name][0].dtype.is_floating_point:
-                raise TypeError(f"DecisionTransformer: {name!r} must be a floating-point tensor, got {expected[name][0].dtype}")
+                raise TypeError(f"DTBackbone: {name!r} must be a floating-point tensor, got {expected[name][0].dtype}")
         if timestep.dtype.is_floating_point:
-            raise TypeError(f"DecisionTransformer: 'timestep' must be an integer tensor, got {timestep.dtype}")
+            raise TypeError(f"DTBackbone: 'timestep' must be an integer tensor, got {timestep.dtype}")
         if mask is not None and mask.dtype != torch.bool:
-            raise TypeError(f"DecisionTransformer: 'mask' must be bool, got {mask.dtype}")
+            raise TypeError(f"DTBackbone: 'mask' must be bool, got {mask.dtype}")
 
     def _check_timestep(self, timestep: torch.Tensor) -> None:
         # One host sync; worth it, since an out-of-range index would otherwise fail deep in
@@ -172,7 +175,7 @@ class DecisionTransformer(nn.Module):
         lo, hi = (int(v) for v in torch.aminmax(timestep))
         if hi >= self.config.max_timestep or lo < 0:
             raise ValueError(
-                f"DecisionTransformer: 'timestep' values must lie in [0, {self.config.max_timestep - 1}] "
+                f"DTBackbone: 'timestep' values must lie in [0, {self.config.max_timestep - 1}] "
                 f"(DTConfig.max_timestep), got [{int(timestep.min())}, {int(timestep.max())}]"
             )
 
@@ -228,8 +231,12 @@ class DecisionTransformer(nn.Module):
         return self.transformer.forward_cached(self.embed_drop(self.embed_ln(tokens_in)), cache, slots, attn_mask)
 
 
-class DTActor(nn.Module):
+class StochasticDTActor(nn.Module):
     """Decision Transformer with the Online DT Gaussian head: returns ``(loc, scale)``.
+
+    The counterpart of TorchRL's ``OnlineDTActor`` on :class:`DTBackbone` (it also reads
+    ``timestep`` and ``mask``); named apart from TorchRL's ``DTActor``, which returns deterministic
+    actions.
 
     ``scale = exp(log_std)`` with ``log_std = min + (max - min) * (tanh(x) + 1) / 2`` in
     ``[log_std_min, log_std_max]`` (Online DT). Unlike Online DT/TorchRL (orthogonal init of the
@@ -243,7 +250,7 @@ class DTActor(nn.Module):
     def __init__(self, config: DTConfig):
         super().__init__()
         self.config = config
-        self.transformer = DecisionTransformer(config)
+        self.transformer = DTBackbone(config)
         self.head_loc = nn.Linear(config.embed_dim, config.action_dim)
         self.head_log_std = nn.Linear(config.embed_dim, config.action_dim)
         nn.init.orthogonal_(self.head_loc.weight)
@@ -268,7 +275,7 @@ class DTActor(nn.Module):
 def make_dt_actor(
     config: DTConfig, observation_key="observation", *, device: torch.device | str | None = None
 ) -> ProbabilisticActor:
-    """Build a TorchRL ``ProbabilisticActor`` around a :class:`DTActor`.
+    """Build a TorchRL ``ProbabilisticActor`` around a :class:`StochasticDTActor`.
 
     The actor reads ``[observation_key, "action", "return_to_go", "timestep", "mask"]`` over
     ``[B, K]`` windows, writes ``"loc"``/``"scale"`` and an ``"action"`` drawn from
@@ -279,7 +286,7 @@ def make_dt_actor(
 
     Note that calling the actor overwrites ``"action"``: use ``get_dist`` on training windows.
     """
-    net = DTActor(config)
+    net = StochasticDTActor(config)
     if device is not None:
         net = net.to(device)
     module = TensorDictModule(
@@ -299,11 +306,11 @@ def make_dt_actor(
     )
 
 
-def find_dt_actor(actor: nn.Module) -> DTActor:
-    """Return the (unique) :class:`DTActor` inside ``actor`` (an actor from :func:`make_dt_actor`)."""
-    if isinstance(actor, DTActor):
+def find_dt_actor(actor: nn.Module) -> StochasticDTActor:
+    """Return the (unique) :class:`StochasticDTActor` inside ``actor`` (an actor from :func:`make_dt_actor`)."""
+    if isinstance(actor, StochasticDTActor):
         return actor
-    found = [m for m in actor.modules() if isinstance(m, DTActor)]
+    found = [m for m in actor.modules() if isinstance(m, StochasticDTActor)]
     if len(found) != 1:
-        raise ValueError(f"expected exactly one DTActor inside {type(actor).__name__}, found {len(found)}")
+        raise ValueError(f"expected exactly one StochasticDTActor inside {type(actor).__name__}, found {len(found)}")
     return found[0]

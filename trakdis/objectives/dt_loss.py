@@ -1,4 +1,4 @@
-"""Decision Transformer loss: masked negative log-likelihood minus an entropy bonus."""
+"""Online Decision Transformer loss on padded windows: masked negative log-likelihood minus an entropy bonus."""
 from __future__ import annotations
 
 import math
@@ -6,14 +6,13 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential, dispatch
 from tensordict.utils import NestedKey
 from torchrl.modules import TanhNormal
-from torchrl.modules.distributions.utils import rsample_and_log_prob
-from torchrl.objectives import LossModule
+from torchrl.objectives import OnlineDTLoss
 
-__all__ = ["DTLoss", "masked_mean", "clamp_action", "tanh_normal_log_prob", "tanh_normal_rsample_log_prob"]
+__all__ = ["MaskedOnlineDTLoss", "masked_mean", "clamp_action", "tanh_normal_log_prob", "tanh_normal_rsample_log_prob"]
 
 _LOG_2 = math.log(2.0)
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
@@ -96,25 +95,41 @@ def get_mask(tensordict: TensorDictBase, key: NestedKey, like: torch.Tensor, own
     return mask
 
 
-class DTLoss(LossModule):
-    r"""Decision Transformer / Online DT loss with padding masks.
+class MaskedOnlineDTLoss(OnlineDTLoss):
+    r"""TorchRL's :class:`~torchrl.objectives.OnlineDTLoss` on left-padded windows, with clamped targets
+    and a fixed entropy weight that may be 0.
 
-    ``loss_nll = masked_mean(-log pi(a_target))`` and an entropy bonus
-    ``loss_entropy = -lambda * H`` where ``H = masked_mean(-log pi(a~pi))`` is the Monte-Carlo entropy
-    estimate of Online DT / TorchRL's ``OnlineDTLoss`` (``TanhNormal`` has no closed form). With
-    ``learn_temperature=True``, ``lambda = exp(log_alpha)`` is learned as in Online DT:
-    ``loss_alpha = alpha * (H - target_entropy).detach()`` and ``loss_entropy`` uses ``alpha.detach()``.
+    ``loss_nll = masked_mean(-log pi(a_target))`` and ``loss_entropy = -lambda * H``, where
+    ``H = masked_mean(-log pi(a~pi))`` is Online DT's Monte-Carlo entropy estimate (``TanhNormal`` has
+    no closed form). With ``learn_temperature=True``, ``lambda = exp(log_alpha)`` is learned as in
+    ``OnlineDTLoss``: ``loss_alpha = alpha * (H - target_entropy).detach()``, and ``loss_entropy`` uses
+    ``alpha.detach()``. The temperature, its target entropy and its state (``log_alpha``,
+    ``alpha_init``, ``target_entropy``) are ``OnlineDTLoss``'s; so is the masked reduction
+    (:attr:`loss_mask_key`, kept equal to the ``mask`` key of :meth:`set_keys`).
 
-    With a full mask and the same temperature, ``loss_nll``/``loss_entropy`` equal TorchRL's
-    ``OnlineDTLoss`` ``loss_log_likelihood``/``loss_entropy`` (for targets inside the clamp range);
-    unlike it, padded steps are excluded from every average.
+    What this subclass adds to ``OnlineDTLoss`` (checked against torchrl 0.14):
+
+    * a fixed weight ``lambda_entropy`` that may be 0 (``OnlineDTLoss`` takes ``log(alpha_init)``) and
+      is used exactly (not as ``exp(log(lambda))``), with no ``loss_alpha`` output when it is fixed;
+    * target actions clamped to ``[-1 + action_eps, 1 - action_eps]`` (to match the actor's
+      ``loc_bound``, :attr:`~trakdis.modules.DTConfig.action_eps`), while the actor still reads the
+      unclamped actions as inputs;
+    * the padding mask is required (a missing or malformed mask is an error, not "no masking"), and
+      the logged ``entropy`` is its masked mean;
+    * for TorchRL's ``TanhNormal`` over [-1, 1] (:func:`~trakdis.modules.make_dt_actor`) the
+      log-probabilities are computed in closed form, with the same operations and random draws as
+      ``TanhNormal`` (same numbers) but without building distribution objects; other distributions
+      go through ``actor.get_dist`` and ``OnlineDTLoss.get_entropy_bonus``.
+
+    With a full mask and the same temperature, ``loss_nll``/``loss_entropy`` equal ``OnlineDTLoss``'s
+    ``loss_log_likelihood``/``loss_entropy`` (for targets inside the clamp range).
 
     Args:
         actor_network: a probabilistic actor whose ``get_dist(td)`` gives the per-step policy
             (e.g. :func:`~trakdis.modules.make_dt_actor`).
 
     Keyword Args:
-        lambda_entropy: fixed entropy weight (paper: 0.1); initial temperature when learned.
+        lambda_entropy: fixed entropy weight (paper: 0.1; >= 0); initial temperature when learned (> 0).
         learn_temperature: learn ``log_alpha`` toward ``target_entropy`` (Online DT).
         target_entropy: ``"auto"`` (``-action_dim``, from the actor's spec) or a float.
         samples_mc_entropy: samples per step for the entropy estimate.
@@ -125,22 +140,19 @@ class DTLoss(LossModule):
     """
 
     @dataclass
-    class _AcceptedKeys:
+    class _AcceptedKeys(OnlineDTLoss._AcceptedKeys):
         """Tensordict keys.
 
         Attributes:
             action_target: target action (also the DT's action input). Defaults to ``"action"``.
+            action_pred: the actor's action (its spec gives ``target_entropy="auto"``). Defaults to ``"action"``.
             mask: bool ``[B, K]`` padding mask (True = real step). Defaults to ``"mask"``.
         """
 
-        action_target: NestedKey = "action"
         mask: NestedKey = "mask"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
-    actor_network: TensorDictModule
-    actor_network_params: TensorDictParams
-    target_actor_network_params: TensorDictParams
 
     def __init__(
         self,
@@ -152,53 +164,64 @@ class DTLoss(LossModule):
         samples_mc_entropy: int = 1,
         action_eps: float = 1e-6,
     ) -> None:
-        super().__init__()
         if lambda_entropy < 0 or (learn_temperature and lambda_entropy == 0):
             raise ValueError(f"lambda_entropy={lambda_entropy} must be >= 0 (> 0 when the temperature is learned)")
-        self.convert_to_functional(actor_network, "actor_network", create_target_params=False)
-        device = next(iter(self.actor_network_params.values(True, True))).device
+        super().__init__(
+            actor_network,
+            alpha_init=float(lambda_entropy) if lambda_entropy > 0 else 1.0,  # OnlineDTLoss takes its log
+            fixed_alpha=not learn_temperature,
+            target_entropy=target_entropy,
+            samples_mc_entropy=int(samples_mc_entropy),
+        )
         self.learn_temperature = learn_temperature
-        if learn_temperature:
-            self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(lambda_entropy), device=device))
-        else:
-            self.register_buffer("lambda_entropy", torch.tensor(float(lambda_entropy), device=device))
-        if target_entropy == "auto":
-            spec = getattr(actor_network, "spec", None)
-            if spec is None or "action" not in spec.keys():
-                raise RuntimeError("DTLoss: cannot infer the action dimension from the actor's spec; pass target_entropy=")
-            target_entropy = -float(spec["action"].shape[-1])
-        self.register_buffer("target_entropy", torch.tensor(float(target_entropy), device=device))
-        self.samples_mc_entropy = int(samples_mc_entropy)
+        if not learn_temperature:
+            # the exact weight (exp(log(0.1)) is 1 ulp off in float32); log_alpha/alpha_init follow it
+            self.register_buffer("lambda_entropy", torch.tensor(float(lambda_entropy), device=self.log_alpha.device))
+            with torch.no_grad():
+                self.alpha_init.fill_(float(lambda_entropy))
+                self.log_alpha.copy_(self.lambda_entropy.log())  # -inf for 0
         self.action_eps = float(action_eps)
         self._tanh_normal_keys = _tanh_normal_keys(actor_network)
+        self.loss_mask_key = self.tensor_keys.mask
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
+        # set_keys(): the mask key is also the reduction's mask; the input keys change
+        self.loss_mask_key = self.tensor_keys.mask
+        self._in_keys = None
 
-    @property
-    def in_keys(self):
+    def _set_in_keys(self):
         keys = set(self.actor_network.in_keys) | {self.tensor_keys.action_target, self.tensor_keys.mask}
-        return sorted(keys, key=str)
+        self._in_keys = sorted(keys, key=str)
 
     @property
     def out_keys(self):
         keys = ["loss_nll", "loss_entropy", "entropy", "alpha"]
         return keys + ["loss_alpha"] if self.learn_temperature else keys
 
+    @out_keys.setter
+    def out_keys(self, values):
+        self._out_keys = values
+
     @property
     def alpha(self) -> torch.Tensor:
         """Current entropy weight (detached)."""
-        return (self.log_alpha.exp() if self.learn_temperature else self.lambda_entropy).detach()
+        return super().alpha if self.learn_temperature else self.lambda_entropy.detach()
 
-    def entropy(self, dist: torch.distributions.Distribution) -> torch.Tensor:
-        """Per-step Monte-Carlo entropy ``-mean_s log pi(a_s)``, ``a_s ~ pi`` reparameterised."""
-        _, log_p = rsample_and_log_prob(dist, (self.samples_mc_entropy,))
-        return -log_p.mean(0)
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints of the former trakdis MaskedOnlineDTLoss (before it subclassed OnlineDTLoss) lack these
+        for name in ("alpha_init", "log_alpha"):
+            if prefix + name not in state_dict:
+                state_dict[prefix + name] = getattr(self, name).detach().clone()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        target = tensordict.get(self.tensor_keys.action_target)
+        target = tensordict.get(self.tensor_keys.action_target, None)
+        if target is None:
+            raise KeyError(f"{type(self).__name__}: the target action {self.tensor_keys.action_target!r} is missing "
+                           f"(keys: {list(tensordict.keys())})")
         if target.requires_grad:
-            raise RuntimeError(f"DTLoss: the target action {self.tensor_keys.action_target!r} must not require grad")
+            raise RuntimeError(f"{type(self).__name__}: the target action {self.tensor_keys.action_target!r} must not require grad")
         target = clamp_action(target, self.action_eps)
         tanh_keys = self._tanh_normal_keys
         with self.actor_network_params.to_module(self.actor_network):
@@ -208,17 +231,18 @@ class DTLoss(LossModule):
                 params = self.actor_network.get_dist_params(tensordict.copy())
         if tanh_keys is None:
             log_prob = dist.log_prob(target)
-            entropy = self.entropy(dist)
+            entropy = self.get_entropy_bonus(dist)
         else:
             loc, scale = params.get(tanh_keys[0]), params.get(tanh_keys[1])
             log_scale = scale.log()
             log_prob = tanh_normal_log_prob(loc, scale, target, log_scale)
             entropy = -tanh_normal_rsample_log_prob(loc, scale, self.samples_mc_entropy, log_scale).mean(0)
-        mask = get_mask(tensordict, self.tensor_keys.mask, log_prob, "DTLoss")
-        weight = mask.to(log_prob.dtype)
-        denom = weight.sum().clamp_min(1.0)  # masked_mean, with the mask converted once
-        entropy = (entropy * weight).sum() / denom
-        out = {"loss_nll": -((log_prob * weight).sum() / denom), "loss_entropy": -self.alpha * entropy}
+        get_mask(tensordict, self.tensor_keys.mask, log_prob, type(self).__name__)  # required, [B, K] bool
+        entropy = self._reduce_loss(entropy, tensordict, reduction="mean")  # masked mean (loss_mask_key)
+        out = {
+            "loss_nll": self._reduce_loss(-log_prob, tensordict, reduction="mean"),
+            "loss_entropy": -self.alpha * entropy,
+        }
         if self.learn_temperature:
             out["loss_alpha"] = self.log_alpha.exp() * (entropy - self.target_entropy).detach()
         out["entropy"] = entropy.detach()

@@ -19,7 +19,7 @@ from .config import (
     save_config,
 )
 from .evaluation import EpisodeResults, run_episodes, summarize, write_summary_table
-from .logger import CSVLogger, latest_run_dir, make_run_dir
+from .logger import WideCSVLogger, latest_run_dir, make_run_dir
 from .plot import plot_csv, plot_curves
 from .progress import progress
 from .run import Run, RunConfig, seed_everything
@@ -40,7 +40,7 @@ __all__ = [
     "load_config",
     "parse_config",
     "save_config",
-    "CSVLogger",
+    "WideCSVLogger",
     "latest_run_dir",
     "make_run_dir",
     "plot_csv",

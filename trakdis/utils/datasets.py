@@ -93,9 +93,9 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tuple[TensorDict, torch.Tensor]:
     """``(steps [episodes, horizon], lengths [episodes])`` of a dataset (memory-mapped), optionally
     restricted to ``keys``; raises a clear error naming missing keys."""
-    from trakdis.data import load_dataset
+    from trakdis.data import load_expert_dataset
 
-    steps, meta = load_dataset(path)
+    steps, meta = load_expert_dataset(path)
     if keys is not None:
         missing = [k for k in keys if k not in steps.keys()]
         if missing:

@@ -19,7 +19,7 @@ import pandas as pd
 
 from .checkpoint import atomic_write_bytes
 
-__all__ = ["check_run_name", "make_run_dir", "latest_run_dir", "CSVLogger"]
+__all__ = ["check_run_name", "make_run_dir", "latest_run_dir", "WideCSVLogger"]
 
 
 def latest_run_dir(root: str | Path, recipe: str) -> Path | None:
@@ -104,7 +104,7 @@ def _scalar(value: Any, key: str) -> float | int | str:
     raise TypeError(f"metric {key!r} has unsupported type {type(value).__name__}")
 
 
-class CSVLogger:
+class WideCSVLogger:
     """One-table CSV log: ``log(step, {"train/loss_nll": 0.3, ...})`` adds/merges one row.
 
     Rows with the same ``step`` are merged (train and eval metrics of one step share a row).
@@ -178,7 +178,7 @@ class CSVLogger:
     def close(self) -> None:
         self.flush()
 
-    def __enter__(self) -> "CSVLogger":
+    def __enter__(self) -> "WideCSVLogger":
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -37,7 +37,7 @@ import torch
 
 from .checkpoint import load_checkpoint, save_checkpoint
 from .config import load_config, parse_config, save_config
-from .logger import CSVLogger, make_run_dir
+from .logger import WideCSVLogger, make_run_dir
 from .plot import plot_csv
 
 __all__ = ["RunConfig", "Run", "seed_everything"]
@@ -81,7 +81,7 @@ class Run:
         self.dir = Path(directory)
         self.checkpoint_path = self.dir / "checkpoint.pt"
         self.log_path = self.dir / "log.csv"
-        self._logger: CSVLogger | None = None
+        self._logger: WideCSVLogger | None = None
         self._resume_state: dict[str, Any] | None = None
         self.t0 = time.time()
 
@@ -136,12 +136,12 @@ class Run:
         return self._resume_state
 
     @property
-    def logger(self) -> CSVLogger:
+    def logger(self) -> WideCSVLogger:
         if self._logger is None:
             # Rows logged after the checkpoint (or all rows, without a checkpoint) are dropped: the
             # resumed run logs them again.
             step = -1 if self._resume_state is None else int(self._resume_state.get("step", 0))
-            self._logger = CSVLogger(self.log_path, resume=self.log_path.exists(), truncate_after=step)
+            self._logger = WideCSVLogger(self.log_path, resume=self.log_path.exists(), truncate_after=step)
         return self._logger
 
     def log(self, step: int, metrics: Mapping[str, Any]) -> None:
