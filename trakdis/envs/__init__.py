@@ -20,7 +20,7 @@ from trakdis.envs.cloth_env import (  # noqa: E402
 from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_noise, expert_action  # noqa: E402
 from trakdis.envs.model import PICKER_MARKER_RADIUS, RENDER_VERSION  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
-from trakdis.envs.torchrl_env import make_env  # noqa: E402
+from trakdis.envs.torchrl_env import ClothInfoReader, make_env, with_contract_keys  # noqa: E402
 
 for _task, _cls in ENV_CLASSES.items():
     _id = f"trakdis/{_task}-v0"
@@ -45,4 +45,6 @@ __all__ = [
     "ExpertPolicy",
     "expert_action",
     "make_env",
+    "ClothInfoReader",
+    "with_contract_keys",
 ]

@@ -69,11 +69,29 @@ def make_env(
     gym_env = ENV_CLASSES[task](from_pixels=from_pixels, image_size=image_size, split=split, **env_kwargs)
     # GymWrapper's ``from_pixels`` means "render through gym's pixel wrapper": our env puts the
     # image in its Dict observation itself, so it stays False here.
-    env = GymWrapper(gym_env, device=device)
-    env.set_info_dict_reader(ClothInfoReader(device=device))
-    # GymWrapper renames a Dict observation's "state" entry to "observation" (TorchRL's
-    # convention for a single observation); the design contract keeps the name "state".
-    env = TransformedEnv(env, Compose(RenameTransform(["observation"], ["state"]), StepCounter()))
+    env = with_contract_keys(GymWrapper(gym_env, device=device))
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+def with_contract_keys(env: GymWrapper) -> TransformedEnv:
+    """Gives TorchRL's wrapper of a cloth gym env the keys of :func:`make_env` (docs/design.md).
+
+    ``GymEnv("trakdis/<Task>-v0")`` (or ``GymWrapper`` around the gym env) alone differs from
+    :func:`make_env` in three ways, all TorchRL's conventions: the ``"state"`` entry of the Dict
+    observation is renamed ``"observation"`` (``torchrl/envs/libs/gym.py``, ``convert_dict_spec``;
+    no option turns it off), the info entries are not read, and there is no step count. This
+    registers :class:`ClothInfoReader` on ``env`` and adds ``RenameTransform("observation" ->
+    "state")`` and ``StepCounter()``; :func:`make_env` is exactly this on ``GymWrapper``::
+
+        env = with_contract_keys(GymEnv("trakdis/ClothFold-v0", from_pixels=True, pixels_only=False))
+
+    gives the keys and specs of ``make_env("ClothFold", from_pixels=True)`` (pixels rendered at the
+    env's default ``image_size`` through TorchRL's pixel wrapper: the same images).
+    """
+    if isinstance(env, TransformedEnv):
+        raise TypeError(f"with_contract_keys: pass the GymEnv/GymWrapper itself, got a TransformedEnv around {type(env.base_env).__name__}")
+    env.set_info_dict_reader(ClothInfoReader(device=env.device))
+    # the design contract keeps the name "state" (see the docstring)
+    return TransformedEnv(env, Compose(RenameTransform(["observation"], ["state"]), StepCounter()))
