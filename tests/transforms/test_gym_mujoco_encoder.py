@@ -62,8 +62,9 @@ def test_parallel_gym_mujoco_env():
 
 def test_key_arguments_are_checked():
     enc = LazyEncoder()
-    with pytest.raises(TypeError, match=r"in_keys must be a list of keys.*\['pixels'\]"):
-        EncoderTransform(enc, in_keys="pixels")
+    assert EncoderTransform(enc, in_keys="rgb", out_keys=("agent", "estimate")).out_keys == [("agent", "estimate")]  # as TorchRL
+    with pytest.raises(ValueError, match="in_keys is empty"):
+        EncoderTransform(enc, in_keys=[])
     with pytest.raises(ValueError, match="several in_keys"):
         EncoderTransform(enc, in_keys=["a", "b"])
     with pytest.raises(ValueError, match="differ in length"):

@@ -24,9 +24,8 @@ def _module_device(module: nn.Module) -> torch.device | None:
 
 
 def _key_list(keys, name: str) -> list:
-    if isinstance(keys, (str, tuple)):  # one NestedKey, not a list of them
-        raise TypeError(f"EncoderTransform: {name} must be a list of keys, got {keys!r} (write [{keys!r}])")
-    keys = list(keys)
+    # one NestedKey (a str or a tuple) is one key, as for every TorchRL transform
+    keys = [keys] if isinstance(keys, (str, tuple)) else list(keys)
     if not keys:
         raise ValueError(f"EncoderTransform: {name} is empty")
     return keys
