@@ -281,7 +281,11 @@ def attention(q, k, v, attn_mask: torch.Tensor | None, dropout_p: float) -> torc
     With attention dropout on a CPU, SDPA falls back to its math kernel with PyTorch's slow
     dropout (measured ~2x slower fwd+bwd than without dropout); there the same math is computed
     by :func:`chunked_attention` with the cheaper dropout of :func:`fast_dropout`, skipping the
-    causal upper triangle chunk by chunk.
+    causal upper triangle chunk by chunk. Measured against SDPA + ``nn.Dropout`` (issue 13, one
+    thread, training steps of batch 64 interleaved in one process, best of 4-12 rounds): 1.40x
+    faster at ``--preset paper`` size (context 30), 1.22x at the ``DTConfig`` defaults, 1.12x for
+    the recipes' small model with ``--dropout 0.1``; with dropout 0 (the recipes' default) neither
+    runs.
     """
     if dropout_p == 0.0 or q.device.type != "cpu":
         if attn_mask is None:
@@ -471,7 +475,7 @@ class CausalTransformer(nn.Module):
     token). A real query attends to real keys at or before its position; a padded query attends
     only to itself (so no row of the softmax is empty and no NaN appears). Outputs at real
     positions therefore never depend on the content of padded positions, as long as that content
-    is finite (callers should zero padded inputs, as :class:`~trakdis.modules.DecisionTransformer` does).
+    is finite (callers should zero padded inputs, as :class:`~trakdis.modules.DTBackbone` does).
     """
 
     def __init__(self, config: TransformerConfig):
