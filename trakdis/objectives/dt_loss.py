@@ -216,6 +216,9 @@ class MaskedOnlineDTLoss(OnlineDTLoss):
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # Not OnlineDTLoss.forward: it reads the target and the actor's action input from one entry
+        # (no room to clamp only the target) and always builds the distribution; the reduction,
+        # temperature and entropy estimator below are its own.
         target = tensordict.get(self.tensor_keys.action_target, None)
         if target is None:
             raise KeyError(f"{type(self).__name__}: the target action {self.tensor_keys.action_target!r} is missing "
