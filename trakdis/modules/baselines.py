@@ -33,7 +33,7 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from trakdis.modules.encoder import StateEncoder, to_float_chw
 
-__all__ = ["BCConfig", "BCHead", "ImageTrunk", "make_bc_actor", "with_image_trunk"]
+__all__ = ["BCConfig", "BCHead", "ImageTrunk", "ImageTrunkConfig", "make_bc_actor", "with_image_trunk"]
 
 FEATURE_KEY = "image_features"
 
@@ -85,6 +85,26 @@ class ImageTrunk(nn.Module):
             lead = x.shape[:-3]
             x = random_shift(x.reshape(-1, *x.shape[-3:]), self.pad).reshape(*lead, *x.shape[-3:])
         return self.encoder(x)
+
+
+@dataclass
+class ImageTrunkConfig:
+    """CNN trunk of an image baseline (the recipes' ``--trunk.*`` options; :class:`ImageTrunk`)."""
+
+    feature_dim: int = 64
+    """width of the learned image features"""
+    channels: tuple[int, ...] = (32, 32, 32, 32)
+    """channels of the 4 conv layers"""
+    hidden_dim: int = 256
+    """width of the CNN's MLP head"""
+    stem_stride: int = 2
+    """stride of the first conv layer"""
+    pad: int = 2
+    """random-shift augmentation (pixels) while training; 0: none"""
+
+    def make(self, image_size: int = 32) -> ImageTrunk:
+        return ImageTrunk(self.feature_dim, pad=self.pad, image_size=image_size, channels=self.channels,
+                          hidden_dim=self.hidden_dim, stem_stride=self.stem_stride)
 
 
 @dataclass
