@@ -136,3 +136,29 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert len(pd.read_csv(out / "timings.csv")) == 17
     finally:
         torch.set_num_threads(torch_threads)
+
+
+@pytest.mark.parametrize("recipe,flags", [
+    ("bc_image", ["--trunk.pad", "--trunk.feature-dim", "--loss-function", "--epochs", "--resume"]),
+    ("dt_image", ["--trunk.pad", "--model.context-len", "--updates", "--eval-rtg", "--lambda-entropy"]),
+])
+def test_help(recipe, flags, capsys):
+    from .conftest import load_recipe
+
+    with pytest.raises(SystemExit) as exc:
+        load_recipe(recipe).main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for flag in flags:
+        assert flag in out, flag
+
+
+def test_table1_help_and_quick_preset(capsys):
+    bench = load_benchmark()
+    from trakdis.utils.config import parse_config
+
+    cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--seeds", "2"], presets=bench.PRESETS)
+    assert cfg.trials == 20 and cfg.seeds == 2 and "--offline-updates" in cfg.teacher_args
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--help"])
+    assert exc.value.code == 0 and "--seeds" in capsys.readouterr().out
