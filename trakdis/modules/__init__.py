@@ -1,11 +1,18 @@
 """Models: causal transformer, Decision Transformer actor, acting wrapper, CNN state encoder."""
 from trakdis.modules.acting import DTActingPolicy
+from trakdis.modules.baselines import BCConfig, BCHead, ImageTrunk, ImageTrunkConfig, make_bc_actor, with_image_trunk
 from trakdis.modules.decision_transformer import DTBackbone, DTConfig, StochasticDTActor, find_dt_actor, make_dt_actor
 from trakdis.modules.encoder import SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 from trakdis.modules.weights import copy_teacher_weights
 
 __all__ = [
+    "BCConfig",
+    "BCHead",
+    "ImageTrunk",
+    "ImageTrunkConfig",
+    "make_bc_actor",
+    "with_image_trunk",
     "CausalTransformer",
     "DTActingPolicy",
     "DTBackbone",

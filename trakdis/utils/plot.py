@@ -20,7 +20,7 @@ import pandas as pd
 
 from .checkpoint import atomic_write_bytes
 
-__all__ = ["plot_curves", "plot_csv", "nice_ticks"]
+__all__ = ["plot_curves", "plot_csv", "plot_mean_std", "nice_ticks"]
 
 _COLORS = [(180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140)]
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -150,6 +150,83 @@ def plot_csv(csv_path: str | Path, out: str | Path | None = None, **kwargs) -> P
     out = Path(out) if out is not None else csv_path.with_name("curves.png")
     kwargs.setdefault("title", str(csv_path.parent))
     return plot_curves(frame, out, **kwargs)
+
+
+def plot_mean_std(
+    curves: "dict[str, tuple[Sequence[float], np.ndarray]]",
+    path: str | Path,
+    *,
+    title: str = "",
+    xlabel: str = "step",
+    ylabel: str = "",
+    size: tuple[int, int] = (420, 640),
+) -> Path:
+    """One panel of several curves, each a mean line with a +-1 std band: ``curves[label] = (x [T],
+    values [S, T])`` (``S`` runs, e.g. seeds; NaN entries are left out of that point's mean/std).
+    The legend gives each label with its number of runs. Writes a PNG and returns its path."""
+    h, w = size
+    img = np.full((h, w, 3), 255, np.uint8)
+    left, right, top, bottom = 62, 160, 30, 40
+    pw, ph = w - left - right, h - top - bottom
+    head = f"{title}: {ylabel}" if title and ylabel else (title or ylabel)
+    cv2.putText(img, head, (left, 20), _FONT, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.rectangle(img, (left, top), (left + pw, top + ph), (0, 0, 0), 1)
+    stats = {}
+    for label, (x, values) in curves.items():
+        x = np.asarray(x, dtype=float)
+        v = np.asarray(values, dtype=float).reshape(-1, len(x))
+        with np.errstate(all="ignore"):
+            n = np.isfinite(v).sum(0)
+            mean = np.where(n > 0, np.nansum(v, 0) / np.maximum(n, 1), np.nan)
+            std = np.where(n > 0, np.sqrt(np.nansum((v - mean) ** 2, 0) / np.maximum(n, 1)), np.nan)
+        ok = np.isfinite(x) & np.isfinite(mean)
+        stats[label] = (x[ok], mean[ok], std[ok], v.shape[0])
+    xs = np.concatenate([s[0] for s in stats.values()]) if stats else np.array([])
+    lo = np.concatenate([s[1] - s[2] for s in stats.values()]) if stats else np.array([])
+    hi = np.concatenate([s[1] + s[2] for s in stats.values()]) if stats else np.array([])
+    if xs.size == 0:
+        cv2.putText(img, "no data", (left + pw // 3, top + ph // 2), _FONT, 0.5, (128, 128, 128), 1, cv2.LINE_AA)
+    else:
+        x0, x1 = float(xs.min()), float(xs.max())
+        y0, y1 = float(lo.min()), float(hi.max())
+        if x1 == x0:
+            x0, x1 = x0 - 1, x1 + 1
+        if y1 == y0:
+            y0, y1 = y0 - 0.5, y1 + 0.5
+        pad = (y1 - y0) * 0.05
+        y0, y1 = y0 - pad, y1 + pad
+
+        def px(xv, yv):
+            return np.stack([np.round(left + (np.asarray(xv) - x0) / (x1 - x0) * pw),
+                             np.round(top + ph - (np.asarray(yv) - y0) / (y1 - y0) * ph)], -1).astype(np.int32)
+
+        for t in nice_ticks(y0, y1, 6):
+            ty = int(px(x0, t)[1])
+            cv2.line(img, (left, ty), (left + pw, ty), (230, 230, 230), 1)
+            cv2.putText(img, _fmt(t), (4, ty + 4), _FONT, 0.35, (60, 60, 60), 1, cv2.LINE_AA)
+        for t in nice_ticks(x0, x1, 6):
+            tx = int(px(t, y0)[0])
+            cv2.line(img, (tx, top + ph), (tx, top + ph + 4), (0, 0, 0), 1)
+            cv2.putText(img, _fmt(t), (tx - 4 * len(_fmt(t)), top + ph + 16), _FONT, 0.35, (60, 60, 60), 1, cv2.LINE_AA)
+        for i, (label, (x, mean, std, n_runs)) in enumerate(stats.items()):
+            color = _COLORS[i % len(_COLORS)]
+            if len(x):
+                band = np.concatenate([px(x, mean + std), px(x[::-1], (mean - std)[::-1])])
+                overlay = img.copy()
+                cv2.fillPoly(overlay, [band.reshape(-1, 1, 2)], color, cv2.LINE_AA)
+                cv2.addWeighted(overlay, 0.2, img, 0.8, 0, dst=img)
+                pts = px(x, mean).reshape(-1, 1, 2)
+                cv2.polylines(img, [pts], False, color, 2, cv2.LINE_AA)
+                for p in pts[:, 0]:
+                    cv2.circle(img, (int(p[0]), int(p[1])), 3, color, -1, cv2.LINE_AA)
+            ly = top + 14 + 18 * i
+            cv2.line(img, (left + pw + 10, ly - 4), (left + pw + 30, ly - 4), color, 2, cv2.LINE_AA)
+            cv2.putText(img, f"{label} (n={n_runs})", (left + pw + 34, ly), _FONT, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, xlabel, (left + pw // 2 - 4 * len(xlabel), h - 6), _FONT, 0.4, (60, 60, 60), 1, cv2.LINE_AA)
+    ok, png = cv2.imencode(".png", img)
+    if not ok:  # pragma: no cover - OpenCV without PNG support
+        raise RuntimeError("OpenCV could not encode a PNG")
+    return atomic_write_bytes(path, png.tobytes())
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

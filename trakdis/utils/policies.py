@@ -40,6 +40,8 @@ __all__ = [
     "StateNormalizer",
     "NormalizedPolicy",
     "ProprioceptionOverride",
+    "IMAGE_POLICY_KINDS",
+    "save_image_policy",
 ]
 
 
@@ -103,12 +105,14 @@ def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, se
 
 def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale: float = 1.0,
                     encoder: nn.Module | None = None, state_noise: float = 0.0, noise_seed: int | None = None,
-                    video_size: int | None = None, **batched_kwargs):
+                    video_size: int | None = None, encoder_key: str = "state_estimate", **batched_kwargs):
     """A batched env with the acting transforms of a DT policy.
 
     ``encoder`` (student): ``EncoderTransform`` writes ``"state_estimate"`` from ``"pixels"``
     (pixels are switched on); ``state_noise`` adds Gaussian noise to ``"state_estimate"``
     (``"state"`` for a teacher); ``target_return`` adds the ``ReturnToGo`` countdown.
+    ``encoder_key``: where the encoder writes (an image baseline's trunk: ``"image_features"``;
+    the state noise then goes there too).
 
     ``video_size``: render ``"pixels"`` at this size (for videos) and write the agent's view,
     resized to ``image_size``, to ``"pixels_agent"`` (which the encoder then reads). A resized
@@ -131,9 +135,9 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
         batched_kwargs["from_pixels"] = True
     env = make_batched_env(task, **batched_kwargs)
     if encoder is not None:
-        transforms.append(EncoderTransform(encoder, in_keys=[agent_key], out_keys=["state_estimate"]))
+        transforms.append(EncoderTransform(encoder, in_keys=[agent_key], out_keys=[encoder_key]))
     if state_noise > 0:
-        key = "state_estimate" if encoder is not None else "state"
+        key = encoder_key if encoder is not None else "state"
         transforms.append(StateNoise(state_noise, in_keys=[key], seed=noise_seed))
     if target_return is not None:
         transforms.append(ReturnToGo(target_return, rtg_scale=rtg_scale))
@@ -295,7 +299,12 @@ def save_policy(path: str | Path, *, kind: str, task: str, horizon: int, dt_conf
 
 @dataclass
 class PolicyHandle:
-    """A loaded policy: ``kind`` in ``{"expert", "teacher", "student"}``."""
+    """A loaded policy: ``kind`` in ``{"expert", "teacher", "student", "bc_image", "dt_image"}``.
+
+    The image baselines (``"bc_image"``, ``"dt_image"``) hold their CNN trunk as ``encoder`` (run in
+    the env by ``EncoderTransform``, writing ``observation_key`` = ``"image_features"``) and their
+    head as ``actor`` (``bc_image``: a TanhNormal actor on the features; ``dt_image``: a DT actor,
+    acted with ``DTActingPolicy`` like a teacher or student)."""
 
     kind: str
     task: str
@@ -322,7 +331,7 @@ class PolicyHandle:
                  parallel: bool = False, from_pixels: bool | None = None, image_size: int = 32,
                  target_return: float | None = None, video_size: int | None = None):
         """The acting env of this policy (pixels on for a student, or when ``from_pixels``)."""
-        is_dt = self.kind != "expert"
+        is_dt = self.kind not in ("expert", "bc_image")
         return make_acting_env(
             self.task,
             target_return=(self.target_return if target_return is None else target_return) if is_dt else None,
@@ -331,6 +340,7 @@ class PolicyHandle:
             num_envs=num_envs, parallel=parallel, seed=seed, split=split,
             from_pixels=bool(from_pixels) or self.uses_pixels, image_size=image_size,
             env_kwargs={"horizon": self.horizon, **self.env_kwargs}, video_size=video_size,
+            **({"encoder_key": self.observation_key} if self.kind in IMAGE_POLICY_KINDS else {}),
         )
 
     def make_policy(self, *, seed: int | None = None):
@@ -339,6 +349,8 @@ class PolicyHandle:
             from trakdis.envs import ExpertPolicy
 
             return ExpertPolicy(self.task, noise=self.expert_noise, seed=seed)
+        if self.kind == "bc_image":  # stateless: the actor on the env's image features
+            return self.actor.eval()
         from trakdis.modules import DTActingPolicy
 
         self.actor.eval()
@@ -361,11 +373,16 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
     path = Path(spec)
     if path.is_dir():
         path = path / "policy.pt"
-    data = load_checkpoint(path, required=("kind", "task", "dt_config", "actor", "observation_key"))
-    if data["kind"] not in ("teacher", "student"):
-        raise CheckpointError(f"{path}: kind {data['kind']!r} is not a policy (expected teacher or student)")
+    data = load_checkpoint(path, required=("kind", "task", "actor", "observation_key"))
+    if data["kind"] not in ("teacher", "student", *IMAGE_POLICY_KINDS):
+        raise CheckpointError(f"{path}: kind {data['kind']!r} is not a policy (expected one of "
+                              f"teacher, student, {', '.join(IMAGE_POLICY_KINDS)})")
     if task is not None and task != data["task"]:
         raise ValueError(f"{path} is a {data['task']} policy, but task {task!r} was asked for")
+    if data["kind"] in IMAGE_POLICY_KINDS:
+        return _load_image_policy(path, data, horizon=horizon, device=device)
+    if "dt_config" not in data:
+        raise CheckpointError(f"{path}: a {data['kind']} policy file lacks 'dt_config'")
     from trakdis.modules import DTConfig, make_dt_actor
 
     actor = make_dt_actor(DTConfig(**data["dt_config"]), observation_key=data["observation_key"], device=device)
@@ -383,3 +400,55 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
         proprio_dims=tuple(data.get("proprio_dims") or ()),
     )
+
+
+# --------------------------------------------------------------------------- image baselines
+IMAGE_POLICY_KINDS = ("bc_image", "dt_image")
+"""Policy kinds that read the image through their own CNN trunk (the paper's BC and DT-image)."""
+
+
+def save_image_policy(path: str | Path, *, kind: str, task: str, horizon: int, trunk: nn.Module, actor: nn.Module,
+                      head_config: Mapping[str, Any], observation_key: str = "image_features",
+                      target_return: float = 0.0, rtg_scale: float = 1.0, env_kwargs: Mapping[str, Any] | None = None,
+                      extra: Mapping[str, Any] | None = None) -> Path:
+    """Write a ``bc_image`` / ``dt_image`` policy file: ``trunk_config`` + ``trunk`` (an
+    :class:`~trakdis.modules.ImageTrunk`), the head ``actor`` (state dict) and its config
+    (``bc_config`` or ``dt_config``), plus the acting return-to-go of a DT."""
+    if kind not in IMAGE_POLICY_KINDS:
+        raise ValueError(f"save_image_policy: kind must be one of {IMAGE_POLICY_KINDS}, got {kind!r}")
+    config_key = "bc_config" if kind == "bc_image" else "dt_config"
+    cfg = head_config.to_dict() if hasattr(head_config, "to_dict") else dict(head_config)
+    return save_checkpoint(path, {
+        "kind": kind, "task": task, "horizon": int(horizon), config_key: cfg,
+        "trunk_config": dict(trunk.config), "trunk": trunk.state_dict(), "observation_key": observation_key,
+        "actor": actor.state_dict(), "target_return": float(target_return), "rtg_scale": float(rtg_scale),
+        "env_kwargs": dict(env_kwargs or {}), **dict(extra or {}),
+    })
+
+
+def _load_image_policy(path: Path, data: Mapping[str, Any], *, horizon: int | None, device: str) -> PolicyHandle:
+    from trakdis.modules import BCConfig, DTConfig, ImageTrunk, make_bc_actor, make_dt_actor
+
+    config_key = "bc_config" if data["kind"] == "bc_image" else "dt_config"
+    missing = [k for k in (config_key, "trunk_config", "trunk") if k not in data]
+    if missing:
+        raise CheckpointError(f"{path}: a {data['kind']} policy file lacks {missing}")
+    try:
+        trunk = ImageTrunk.from_config(data["trunk_config"]).to(device)
+        trunk.load_state_dict(data["trunk"])
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{path}: the CNN trunk does not match its trunk_config {data['trunk_config']}: {err}") from err
+    if data["kind"] == "bc_image":
+        bc = dict(data[config_key])
+        bc["hidden_dims"] = tuple(bc.get("hidden_dims", ()))
+        actor = make_bc_actor(BCConfig(**bc), observation_key=data["observation_key"], device=device)
+    else:
+        actor = make_dt_actor(DTConfig(**data[config_key]), observation_key=data["observation_key"], device=device)
+    try:
+        actor.load_state_dict(data["actor"])
+    except RuntimeError as err:
+        raise CheckpointError(f"{path}: actor weights do not match its {config_key}: {err}") from err
+    return PolicyHandle(
+        data["kind"], data["task"], data["horizon"] if horizon is None else horizon, actor=actor.eval(),
+        encoder=trunk.eval(), observation_key=data["observation_key"], target_return=data.get("target_return", 0.0),
+        rtg_scale=data.get("rtg_scale", 1.0), env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path))

@@ -1,0 +1,293 @@
+"""The paper's Table I and ablation curves, regenerated in one command.
+
+    python benchmarks/table1.py --name t1                          # 3 tasks x 3 seeds, 100 trials each
+    python benchmarks/table1.py --name t1 --resume                 # continue after a kill
+    python benchmarks/table1.py --name q --quick                   # small sizes (same as --preset quick)
+    python benchmarks/table1.py --name t1 --tasks ClothFold --seeds 5
+
+For every task and seed (``--seed``, ``--seed`` + 1, ... ``--seeds`` of them) it runs, each as an
+ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>``:
+
+* the teacher (``online_dt.py``, ``--teacher-args``), the encoder (``train_encoder.py``,
+  ``--encoder-args``) and the student (``distill.py``, ``--student-args``): the full method, TraKDis;
+* the ablations: No-Aug (the student on an encoder trained with ``--no-aug``: no random shift, no
+  flip), No-Pretrain (``distill.py --no-weight-copy``), No-Distill (``distill.py --no-distill``);
+* the baselines: BC-image (``bc_image.py``, ``--bc-args``) and DT-image (``dt_image.py``,
+  ``--dt-image-args``);
+* ``evaluate.py`` for each of them and for the scripted expert: ``--trials`` eval-split episodes,
+  the same configurations for every method of a seed.
+
+A stage whose output file exists is skipped and an interrupted one resumed, so ``--resume`` (or
+the same command again) continues where a kill stopped it. ``--methods`` picks a subset.
+
+Writes ``<root>/table1/<name>/``: ``table1.md`` (the paper's layout, ours beside the paper's
+numbers, then per method mean +- std, 25th / 50th / 75th percentiles over all episodes of all
+seeds and the spread of the per-seed means), ``table1.csv``, ``curves_<task>.png`` (eval
+normalized performance over the distillation updates of the full method and the ablations: mean
+over seeds with a +-1 std band) and ``timings.csv`` (wall seconds per stage).
+"""
+from __future__ import annotations
+
+import importlib.util
+import shlex
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+
+from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
+from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
+from trakdis.utils.evaluation import markdown_table  # noqa: E402
+from trakdis.utils.plot import plot_mean_std  # noqa: E402
+from trakdis.utils.run import Run, RunConfig  # noqa: E402
+
+RECIPES = ROOT / "recipes"
+
+Method = Literal["expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain", "no_distill"]
+METHODS: tuple[str, ...] = ("expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain", "no_distill")
+LABELS = {"expert": "expert (state)", "teacher": "teacher (state)", "trakdis": "TraKDis (image)",
+          "bc_image": "BC-image", "dt_image": "DT-image", "no_aug": "No-Aug", "no_pretrain": "No-Pretrain",
+          "no_distill": "No-Distill"}
+CURVE_METHODS = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the paper's Fig. 6: same x axis (distill updates)
+
+# The paper's Table I (W. Chen and N. Rojas, RA-L 2024; ../shared/docs/method.md): mean and, where
+# given, std over 100 trials. A reference beside our numbers, not a result of this code.
+PAPER_TABLE1 = {
+    "ClothFold": {"expert": (0.706, 0.159), "teacher": (0.740, 0.111), "trakdis": (0.583, 0.190),
+                  "bc_image": (0.159, None), "dt_image": (0.305, None)},
+    "ClothFoldDiagonalPinned": {"expert": (0.907, 0.009), "teacher": (0.902, 0.004), "trakdis": (0.916, 0.002),
+                                "bc_image": (0.613, None), "dt_image": (0.469, None)},
+    "ClothFoldDiagonalUnpinned": {"expert": (0.926, 0.012), "teacher": (0.921, 0.004), "trakdis": (0.944, 0.004),
+                                  "bc_image": (0.663, None), "dt_image": (0.512, None)},
+}
+
+
+@dataclass
+class Table1Config(RunConfig):
+    """Table I (expert, teacher, TraKDis, BC-image, DT-image) and the ablations, over tasks and seeds."""
+
+    tasks: tuple[TaskName, ...] = TASKS
+    """tasks (default: all three)"""
+    seeds: int = 3
+    """seeds per method: --seed, --seed + 1, ..."""
+    methods: tuple[Method, ...] = METHODS
+    """methods to run and tabulate"""
+    trials: int = 100
+    """evaluation episodes per policy and seed (eval split)"""
+    teacher_args: str = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
+    """options of recipes/online_dt.py (recipes/pipeline.py's default teacher)"""
+    encoder_args: str = "--extra-noise 0.5"
+    """options of recipes/train_encoder.py (No-Aug adds --no-aug)"""
+    student_args: str = "--eval-every 2 --eval-episodes 20 --no-eval-teacher"
+    """options of recipes/distill.py (all four arms; the ablations add their flag)"""
+    bc_args: str = ""
+    """options of recipes/bc_image.py"""
+    dt_image_args: str = ""
+    """options of recipes/dt_image.py"""
+
+    def __post_init__(self):
+        if self.seeds < 1 or self.trials < 1:
+            raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1")
+        if not self.tasks or not self.methods:
+            raise ValueError("--tasks and --methods need at least one value each")
+
+
+PRESETS = {"quick": {
+    "trials": 20,
+    "teacher_args": "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0 --offline-updates 500 "
+                    "--eval-episodes 10 --no-eval-expert",
+    "encoder_args": "--epochs 5",
+    "student_args": "--rounds 4 --updates-per-round 25 --eval-every 1 --eval-episodes 10 --no-eval-teacher",
+    "bc_args": "--epochs 5 --eval-every 5 --eval-episodes 10",
+    "dt_image_args": "--updates 300 --eval-every 100 --eval-episodes 10",
+}}
+
+_loaded: dict[str, object] = {}
+
+
+def recipe(name: str):
+    """Import ``recipes/<name>.py`` once (the recipes are scripts, not a package)."""
+    if name not in _loaded:
+        spec = importlib.util.spec_from_file_location(f"trakdis_recipe_{name}", RECIPES / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # dataclasses look their module up there
+        spec.loader.exec_module(module)
+        _loaded[name] = module
+    return _loaded[name]
+
+
+class Stages:
+    """Runs recipe stages in this process, skipping finished ones, resuming interrupted ones."""
+
+    def __init__(self, run: Run):
+        self.run = run
+        self.timings_path = run.dir / "timings.csv"
+        self.timings = (pd.read_csv(self.timings_path).set_index("stage")["seconds"].to_dict()
+                        if self.timings_path.exists() else {})
+
+    def __call__(self, name: str, run_name: str, output: str, args: list[str], seed: int) -> Path:
+        cfg = self.run.cfg
+        directory = Path(cfg.root) / name / run_name
+        if (directory / output).exists():
+            return directory
+        common = ["--name", run_name, "--root", cfg.root, "--seed", str(seed), "--threads", str(cfg.threads)]
+        if not cfg.progress:
+            common.append("--no-progress")
+        if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv", "config.json")):
+            common.append("--resume")  # an interrupted stage continues (evaluate.py starts over)
+        self.run.print(f"{name}: {directory}")
+        start = time.perf_counter()
+        recipe(name).main([*common, *args])
+        self.timings[f"{name}/{run_name}"] = time.perf_counter() - start
+        frame = pd.DataFrame({"stage": list(self.timings), "seconds": list(self.timings.values())})
+        atomic_write_bytes(self.timings_path, frame.to_csv(index=False).encode())
+        return directory
+
+
+def run_task_seed(stage: Stages, cfg: Table1Config, name: str, task: str, seed: int) -> dict[str, Path]:
+    """All stages of one task and seed; returns ``{method: evaluation run directory}``."""
+    base = f"{name}-{task}-s{seed}"
+    methods = set(cfg.methods)
+    needs_teacher = methods & {"teacher", "trakdis", "no_aug", "no_pretrain", "no_distill"}
+    policies: dict[str, Path] = {}
+    teacher = encoder = None
+    if needs_teacher:
+        teacher = stage("online_dt", f"{base}-teacher", "policy.pt", ["--task", task, *shlex.split(cfg.teacher_args)], seed)
+        policies["teacher"] = teacher
+    if methods & {"trakdis", "no_pretrain", "no_distill"}:
+        encoder = stage("train_encoder", f"{base}-encoder", "encoder.pt", ["--task", task, *shlex.split(cfg.encoder_args)], seed)
+    arms = {"trakdis": [], "no_pretrain": ["--no-weight-copy"], "no_distill": ["--no-distill"]}
+    for method, flags in arms.items():
+        if method in methods:
+            policies[method] = stage("distill", f"{base}-{method}", "policy.pt",
+                                     ["--teacher", str(teacher), "--encoder", str(encoder),
+                                      *shlex.split(cfg.student_args), *flags], seed)
+    if "no_aug" in methods:
+        enc_noaug = stage("train_encoder", f"{base}-encoder-noaug", "encoder.pt",
+                          ["--task", task, *shlex.split(cfg.encoder_args), "--no-aug"], seed)
+        policies["no_aug"] = stage("distill", f"{base}-no_aug", "policy.pt",
+                                   ["--teacher", str(teacher), "--encoder", str(enc_noaug), *shlex.split(cfg.student_args)],
+                                   seed)
+    if "bc_image" in methods:
+        policies["bc_image"] = stage("bc_image", f"{base}-bc_image", "policy.pt",
+                                     ["--task", task, *shlex.split(cfg.bc_args)], seed)
+    if "dt_image" in methods:
+        policies["dt_image"] = stage("dt_image", f"{base}-dt_image", "policy.pt",
+                                     ["--task", task, *shlex.split(cfg.dt_image_args)], seed)
+    evals = {}
+    for method in (m for m in METHODS if m in methods):
+        if method == "expert":
+            from trakdis.utils.policies import load_policy
+
+            # the expert plays episodes of the other policies' length
+            horizon = load_policy(next(iter(policies.values()))).horizon if policies else 100
+            args = ["--policy", "expert", "--task", task, "--horizon", str(horizon)]
+        else:
+            args = ["--policy", str(policies[method])]
+        evals[method] = stage("evaluate", f"{base}-eval-{method}", "summary.csv",
+                              [*args, "--trials", str(cfg.trials), "--videos", "0"], seed)
+    return evals
+
+
+def summarize_method(finals_per_seed: list[np.ndarray]) -> dict:
+    """Pooled episodes of all seeds (mean, std, percentiles) and the spread of the per-seed means."""
+    pooled = np.concatenate(finals_per_seed)
+    seed_means = np.array([f.mean() for f in finals_per_seed])
+    return {"seeds": len(finals_per_seed), "n": int(pooled.size), "mean": float(pooled.mean()), "std": float(pooled.std()),
+            "p25": float(np.percentile(pooled, 25)), "p50": float(np.percentile(pooled, 50)),
+            "p75": float(np.percentile(pooled, 75)), "seed_mean_std": float(seed_means.std()),
+            "seed_mean_min": float(seed_means.min()), "seed_mean_max": float(seed_means.max())}
+
+
+def _paper(task: str, method: str) -> str:
+    mean, std = PAPER_TABLE1.get(task, {}).get(method, (None, None))
+    if mean is None:
+        return "-"
+    return f"{mean:.3f}" if std is None else f"{mean:.3f} +- {std:.3f}"
+
+
+def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[Path]]) -> pd.DataFrame:
+    rows = []
+    for (task, method), dirs in evals.items():
+        finals = []
+        for d in dirs:
+            episodes = pd.read_csv(d / "episodes.csv")
+            finals.append(episodes.loc[episodes["state_noise"] == 0, "final_normalized_performance"].to_numpy(float))
+        rows.append({"task": task, "method": method, **summarize_method(finals), "paper": _paper(task, method)})
+    frame = pd.DataFrame(rows)
+    atomic_write_bytes(run.dir / "table1.csv", frame.to_csv(index=False).encode())
+    methods = [m for m in METHODS if m in cfg.methods]
+    wide = []
+    for task in cfg.tasks:
+        ours = {LABELS[m]: "" for m in methods}
+        for r in rows:
+            if r["task"] == task:
+                ours[LABELS[r["method"]]] = f"{r['mean']:.3f} +- {r['std']:.3f}"
+        wide.append({"task": f"{task} (ours)", **ours})
+        wide.append({"task": f"{task} (paper)", **{LABELS[m]: _paper(task, m) for m in methods}})
+    detail = frame.assign(method=frame["method"].map(LABELS))[
+        ["task", "method", "seeds", "n", "mean", "std", "p25", "p50", "p75", "seed_mean_std", "seed_mean_min",
+         "seed_mean_max", "paper"]]
+    text = [f"# Table I, regenerated ({cfg.seeds} seeds x {cfg.trials} eval-split trials per method and task)", "",
+            "Normalized performance at the episode's end; mean +- std over all episodes of all seeds. "
+            "The paper's numbers (100 trials, one run) are beside ours; '-': the paper gives none.", "",
+            markdown_table(pd.DataFrame(wide)), "",
+            "Per method: percentiles over all episodes; `seed_mean_*`: the spread of the per-seed means.", "",
+            markdown_table(detail), ""]
+    atomic_write_bytes(run.dir / "table1.md", "\n".join(text).encode())
+    return frame
+
+
+def write_curves(run: Run, cfg: Table1Config, seeds: list[int]) -> list[Path]:
+    paths = []
+    for task in cfg.tasks:
+        curves = {}
+        for method in (m for m in CURVE_METHODS if m in cfg.methods):
+            logs = [Path(cfg.root) / "distill" / f"{run.dir.name}-{task}-s{s}-{method}" / "log.csv" for s in seeds]
+            series = []
+            for log in logs:
+                if log.exists():
+                    frame = pd.read_csv(log)
+                    if "eval/normalized_performance" in frame.columns:
+                        series.append(frame.dropna(subset=["eval/normalized_performance"])
+                                      .groupby("step")["eval/normalized_performance"].last())
+            if series:
+                joined = pd.concat(series, axis=1)  # steps x seeds (NaN where a seed lacks a step)
+                curves[LABELS[method]] = (joined.index.to_numpy(float), joined.to_numpy(float).T)
+        if curves:
+            paths.append(plot_mean_std(curves, run.dir / f"curves_{task}.png", title=task,
+                                       ylabel="eval normalized performance (mean +- std over seeds)",
+                                       xlabel="distillation updates"))
+    return paths
+
+
+def main(argv=None) -> pd.DataFrame:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = [a for x in argv for a in (("--preset", "quick") if x == "--quick" else (x,))]
+    run = Run.start("table1", Table1Config, argv, presets=PRESETS, description=__doc__)
+    cfg = run.cfg
+    seeds = list(range(cfg.seed, cfg.seed + cfg.seeds))
+    stage = Stages(run)
+    evals: dict[tuple[str, str], list[Path]] = {}
+    for task in cfg.tasks:
+        for seed in seeds:
+            for method, directory in run_task_seed(stage, cfg, run.dir.name, task, seed).items():
+                evals.setdefault((task, method), []).append(directory)
+    write_tables(run, cfg, evals)
+    pngs = write_curves(run, cfg, seeds)
+    run.print(f"wall time of the stages run so far: {sum(stage.timings.values()):.0f} s (timings.csv)")
+    run.print(f"wrote {run.dir / 'table1.md'}" + "".join(f", {p.name}" for p in pngs))
+    print((run.dir / "table1.md").read_text())
+    return pd.read_csv(run.dir / "table1.csv")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

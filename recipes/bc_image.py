@@ -1,0 +1,168 @@
+"""Baseline BC-image (the paper's "Behavior Cloning"): a CNN + MLP policy from the 32x32 image to
+the expert's action, trained on the expert dataset that the encoder and the teacher use.
+
+    python recipes/bc_image.py --task ClothFold
+    python recipes/evaluate.py --policy runs/bc_image/<name>          # 100 eval-split trials
+
+1. Expert data: the same dataset as ``train_encoder.py`` (``--data.*``, collected if missing);
+   episodes are split into training and validation sets (``--val-fraction``).
+2. Model: ``trakdis.modules.ImageTrunk`` (the encoder's CNN, ``--trunk.*``, random shift of up to
+   ``--trunk.pad`` pixels while training, no flip: see its docstring) -> MLP head -> TanhNormal
+   actor (``make_bc_actor``); loss: ``BehaviourCloningLoss`` (``--loss-function nll|mse``).
+3. ``--epochs`` passes over the training steps; the validation loss every epoch, the policy's
+   normalized performance on the eval split (mean action) every ``--eval-every`` epochs and at the end.
+
+Writes ``runs/bc_image/<name>/``: ``config.json``, ``log.csv``, ``curves.png``, ``checkpoint.pt``
+(after every epoch; ``--resume``) and ``policy.pt`` (for evaluate.py).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import sys
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from trakdis.envs.specs import TaskName
+from trakdis.modules.baselines import ImageTrunkConfig
+from trakdis.utils.checkpoint import rng_state, set_rng_state
+from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
+from trakdis.utils.evaluation import run_episodes
+from trakdis.utils.policies import PolicyHandle, close_env, save_image_policy
+from trakdis.utils.progress import progress
+from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.training import OptimConfig, mean_metrics
+
+
+@dataclass
+class BCImageConfig(OptimConfig, RunConfig):
+    """Behaviour cloning from images on the expert dataset (baseline BC-image)."""
+
+    task: TaskName = "ClothFold"
+    """cloth task"""
+    horizon: int = 100
+    """episode length"""
+    data: DataConfig = field(default_factory=DataConfig)
+    """expert dataset (with pixels)"""
+    image_size: int = 32
+    """image side"""
+    trunk: ImageTrunkConfig = field(default_factory=ImageTrunkConfig)
+    """CNN trunk"""
+    hidden_dims: tuple[int, ...] = (256, 256)
+    """MLP head widths"""
+    loss_function: Literal["nll", "mse"] = "nll"
+    """NLL of the expert's action under the TanhNormal policy, or squared error of its mean action"""
+    epochs: int = 30
+    """passes over the training steps"""
+    batch_size: int = 128
+    """steps per update"""
+    warmup_steps: int = 20
+    """linear learning-rate warm-up (updates)"""
+    val_fraction: float = 0.1
+    """fraction of the episodes held out for validation"""
+    eval_episodes: int = 20
+    """evaluation episodes (eval split)"""
+    eval_every: int = 10
+    """evaluate every N epochs (and at the end)"""
+    num_envs: int = 2
+    """environments stepped together"""
+    parallel: bool = False
+    """step them in subprocesses (ParallelEnv)"""
+
+
+def main(argv=None) -> dict:
+    run = Run.start("bc_image", BCImageConfig, argv, description=__doc__)
+    cfg = run.cfg
+    from trakdis.envs import task_spec
+    from trakdis.modules import BCConfig, make_bc_actor, with_image_trunk
+    from trakdis.objectives import BehaviourCloningLoss
+
+    spec = task_spec(cfg.task, horizon=cfg.horizon)
+    path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
+                          image_size=cfg.image_size, log=run.print, progress=cfg.progress)
+    data, lengths = load_trajectories(path, keys=("pixels", "action"))
+    n_ep = data.shape[0]
+    n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 and cfg.val_fraction > 0 else 0
+    perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
+
+    def flat(episodes):  # the real steps of these episodes (steps past an episode's length are padding)
+        episodes = episodes.sort().values
+        valid = torch.arange(data.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
+        return data[episodes].to_tensordict()[valid]
+
+    train, val = flat(perm[n_val:]), (flat(perm[:n_val]) if n_val else None)
+    run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation steps")
+
+    trunk = cfg.trunk.make(cfg.image_size).to(cfg.device)
+    bc_cfg = BCConfig(cfg.trunk.feature_dim, spec.action_dim, hidden_dims=cfg.hidden_dims)
+    head = make_bc_actor(bc_cfg, device=cfg.device)
+    actor = with_image_trunk(head, trunk)
+    loss = BehaviourCloningLoss(actor, loss_function=cfg.loss_function, action_eps=bc_cfg.action_eps)
+    updater = cfg.make_updater(loss)
+    run.print(f"BC-image: {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters, "
+              f"random shift {cfg.trunk.pad} px, loss {cfg.loss_function}")
+
+    counters = {"epoch": 0, "final_eval": None}
+    state = run.resume_state()
+    if state is not None:
+        updater.load_state_dict(state["updater"])
+        counters.update(state["counters"])
+        set_rng_state(state["rng"])
+    handle = PolicyHandle("bc_image", cfg.task, cfg.horizon, actor=head, encoder=trunk, observation_key="image_features")
+
+    def evaluate() -> float:
+        # The env runs a frozen copy of the trunk (EncoderTransform freezes what it is given, and a
+        # ParallelEnv would pickle it anyway); the head acts in-process.
+        snapshot = dataclasses.replace(handle, encoder=copy.deepcopy(trunk).eval())
+        env = snapshot.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
+        try:
+            res = run_episodes(env, snapshot.make_policy(), cfg.eval_episodes, max_steps=cfg.horizon,
+                               desc="eval", seed=cfg.seed + 10_000)  # the same configurations every time
+        finally:
+            close_env(env)
+            actor.train()
+        s = res.summary()
+        run.log(counters["epoch"], {"eval/normalized_performance": s["mean"], "eval/std": s["std"]})
+        run.print(f"epoch {counters['epoch']}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} "
+                  f"({s['n']} eval episodes)")
+        return s["mean"]
+
+    def validate() -> dict:
+        if val is None:
+            return {}
+        loss.eval()
+        with torch.no_grad():
+            outs = [loss(val[i : i + 512].to(cfg.device)) for i in range(0, val.shape[0], 512)]
+        loss.train()
+        return {f"val/{k}": float(torch.stack([o[k] for o in outs]).mean()) for k in ("loss_bc", "action_mse")}
+
+    while counters["epoch"] < cfg.epochs:
+        order = torch.randperm(train.shape[0])
+        history = [updater.step(train[order[i : i + cfg.batch_size]].to(cfg.device))
+                   for i in progress(range(0, train.shape[0], cfg.batch_size), desc=f"epoch {counters['epoch'] + 1}")]
+        counters["epoch"] += 1
+        run.log(counters["epoch"], {**mean_metrics(history), **validate()})
+        run.print(f"epoch {counters['epoch']}/{cfg.epochs}: loss_bc {run.logger.last('train/loss_bc'):.4f}, "
+                  f"action MSE {run.logger.last('train/action_mse'):.4f}")
+        if counters["epoch"] % cfg.eval_every == 0 and counters["epoch"] < cfg.epochs:
+            evaluate()
+        run.save_checkpoint({"updater": updater.state_dict(), "counters": counters, "rng": rng_state()},
+                            step=counters["epoch"])
+        if run.should_stop(counters["epoch"]) and counters["epoch"] < cfg.epochs:
+            run.print(f"stopping after epoch {counters['epoch']} (--stop-after); continue with --resume")
+            return counters
+    if counters["final_eval"] is None:
+        counters["final_eval"] = evaluate()
+    save_image_policy(run.dir / "policy.pt", kind="bc_image", task=cfg.task, horizon=cfg.horizon, trunk=trunk,
+                      actor=head, head_config=bc_cfg, extra={"dataset": str(path), "epochs": counters["epoch"]})
+    run.save_checkpoint({"updater": updater.state_dict(), "counters": counters, "rng": rng_state()},
+                        step=counters["epoch"])
+    run.finish()
+    run.print(f"BC-image: eval normalized performance {counters['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
+    return counters
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,164 @@
+"""The image baselines' recipes (bc_image.py, dt_image.py) and benchmarks/table1.py at tiny sizes."""
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from trakdis.utils.evaluation import run_episodes
+from trakdis.utils.policies import close_env, load_policy
+
+from .conftest import DATA, HORIZON, run_recipe
+
+TRUNK = ["--trunk.channels", 4, 4, 4, 4, "--trunk.hidden-dim", 16, "--trunk.feature-dim", 8]
+TINY_DT = ["--model.embed-dim", 16, "--model.n-layer", 1, "--model.n-head", 1, "--model.context-len", 3]
+
+
+def bc_args(name, *extra):
+    return ["--name", name, "--horizon", HORIZON, *DATA, *TRUNK, "--hidden-dims", 16, "--epochs", 2, "--batch-size", 8,
+            "--eval-episodes", 2, "--eval-every", 1, "--threads", 1, *extra]
+
+
+def dt_args(name, *extra):
+    return ["--name", name, "--horizon", HORIZON, *DATA, *TRUNK, *TINY_DT, "--batch-size", 4, "--updates", 4,
+            "--eval-episodes", 2, "--eval-every", 2, "--log-every", 1, "--checkpoint-every", 2, "--threads", 1, *extra]
+
+
+def test_bc_image_trains_saves_and_evaluates(workdir, dataset):
+    run_recipe(workdir, "bc_image", *bc_args("bc"))
+    run_dir = workdir / "runs" / "bc_image" / "bc"
+    for name in ("config.json", "log.csv", "curves.png", "checkpoint.pt", "policy.pt"):
+        assert (run_dir / name).exists(), name
+    frame = pd.read_csv(run_dir / "log.csv")
+    assert frame["train/loss_bc"].notna().sum() == 2 and frame["val/action_mse"].notna().sum() == 2
+    assert frame["eval/normalized_performance"].notna().sum() == 2  # after epoch 1 and at the end
+    handle = load_policy(run_dir)
+    assert handle.kind == "bc_image" and handle.observation_key == "image_features" and handle.horizon == HORIZON
+    assert handle.encoder.config["pad"] == 2 and handle.uses_pixels
+    # evaluate.py, with a video: the trunk reads the agent's 32x32 view, not the large render
+    run_recipe(workdir, "evaluate", "--name", "ev_bc", "--policy", "runs/bc_image/bc", "--trials", 2, "--videos", 1,
+               "--video-size", 64, "--threads", 1)
+    summary = pd.read_csv(workdir / "runs" / "evaluate" / "ev_bc" / "summary.csv")
+    assert summary["policy"].tolist() == ["bc_image"] and summary["n"].tolist() == [2]
+
+
+def test_dt_image_stop_resume_matches_uninterrupted_and_evaluates(workdir, dataset):
+    run_recipe(workdir, "dt_image", *dt_args("dti"))
+    run_recipe(workdir, "dt_image", *dt_args("dti2", "--stop-after", 2))
+    assert not (workdir / "runs" / "dt_image" / "dti2" / "policy.pt").exists()
+    out = run_recipe(workdir, "dt_image", "--resume", "--name", "dti2")
+    assert "from step 2" in out.stdout
+    a, b = (pd.read_csv(workdir / "runs" / "dt_image" / n / "log.csv") for n in ("dti", "dti2"))
+    pd.testing.assert_frame_equal(a, b, check_exact=False, atol=1e-5)
+    assert a["train/loss_nll"].notna().sum() == 4 and a["eval/normalized_performance"].notna().sum() == 2
+    handle = load_policy(workdir / "runs" / "dt_image" / "dti")
+    assert handle.kind == "dt_image" and handle.actor is not None and handle.target_return < 0
+    # acting as evaluate.py does (in-process: the subprocess path is covered by the BC test)
+    env = handle.make_env(num_envs=1, split="eval", seed=0)
+    try:
+        res = run_episodes(env, handle.make_policy(), 1, max_steps=HORIZON, desc=None)
+    finally:
+        close_env(env)
+    assert res.lengths.tolist() == [HORIZON] and np.isfinite(res.final_performance).all()
+
+
+def test_image_policy_file_errors(workdir, tmp_path):
+    path = workdir / "runs" / "bc_image" / "bc" / "policy.pt"
+    if not path.exists():
+        pytest.skip("needs test_bc_image_trains_saves_and_evaluates")
+    data = load_checkpoint(path)
+    bad = {k: v for k, v in data.items() if k != "trunk"}
+    save_checkpoint(tmp_path / "no_trunk.pt", bad)
+    with pytest.raises(CheckpointError, match=r"lacks \['trunk'\]"):
+        load_policy(tmp_path / "no_trunk.pt")
+    wrong = dict(data, trunk_config={**data["trunk_config"], "feature_dim": 9})
+    save_checkpoint(tmp_path / "wrong.pt", wrong)
+    with pytest.raises(CheckpointError, match="trunk does not match"):
+        load_policy(tmp_path / "wrong.pt")
+    with pytest.raises(ValueError, match="ClothFold policy, but task"):
+        load_policy(path, task="ClothFoldDiagonalPinned")
+
+
+def load_benchmark():
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "table1.py"
+    spec = importlib.util.spec_from_file_location("_benchmark_table1", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, dataset, monkeypatch, capsys):
+    """One task, one seed, every method at tiny sizes (in-process, as the benchmark runs its stages):
+    the table in the paper's layout with the paper's numbers beside ours, the curves PNG, and a
+    second call that finds every stage finished."""
+    monkeypatch.chdir(workdir)
+    torch_threads = torch.get_num_threads()
+    h, data = ["--horizon", str(HORIZON)], list(map(str, DATA))
+    dt = list(map(str, TINY_DT)) + ["--batch-size", "4"]
+    trunk = list(map(str, TRUNK))
+    args = ["--name", "t1", "--tasks", "ClothFold", "--seeds", "1", "--trials", "2", "--no-progress",
+            "--teacher-args=" + " ".join([*h, *data, *dt, "--offline-updates", "2", "--online-rounds", "0",
+                                          "--eval-episodes", "1", "--no-eval-expert", "--log-every", "1"]),
+            "--encoder-args=" + " ".join([*h, *data, "--epochs", "1", "--batch-size", "8", "--channels", "4", "4", "4", "4",
+                                          "--hidden-dim", "8"]),
+            "--student-args=" + " ".join([*data, "--rounds", "1", "--updates-per-round", "1", "--eval-episodes", "1",
+                                          "--eval-every", "1", "--batch-size", "4", "--no-eval-teacher"]),
+            "--bc-args=" + " ".join([*h, *data, *trunk, "--epochs", "1", "--batch-size", "8", "--hidden-dims", "8",
+                                     "--eval-episodes", "1"]),
+            "--dt-image-args=" + " ".join([*h, *data, *trunk, *dt, "--updates", "1", "--eval-episodes", "1",
+                                           "--log-every", "1"])]
+    try:
+        bench = load_benchmark()
+        frame = bench.main(args)
+        out = workdir / "runs" / "table1" / "t1"
+        assert set(frame["method"]) == set(bench.METHODS) and (frame["n"] == 2).all() and (frame["seeds"] == 1).all()
+        md = (out / "table1.md").read_text()
+        assert "| ClothFold (ours) |" in md and "| ClothFold (paper) | 0.706 +- 0.159 | 0.740 +- 0.111 | 0.583 +- 0.190 |" in md
+        for label in ("BC-image", "DT-image", "No-Aug", "No-Pretrain", "No-Distill", "p25", "seed_mean_std"):
+            assert label in md, label
+        png = cv2.imread(str(out / "curves_ClothFold.png"))
+        assert png is not None and png.shape[0] > 100
+        timings = pd.read_csv(out / "timings.csv")
+        assert len(timings) == 17  # teacher, 2 encoders, 4 distills, 2 baselines, 8 evaluations
+        assert json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-no_pretrain" / "config.json").read_text())["weight_copy"] is False
+        assert json.loads((workdir / "runs" / "train_encoder" / "t1-ClothFold-s0-encoder-noaug" / "config.json").read_text())["aug"] is False
+        capsys.readouterr()
+        again = bench.main(["--name", "t1", "--resume"])
+        assert "run directory:" not in capsys.readouterr().out  # no stage ran again
+        pd.testing.assert_frame_equal(frame, again)
+        assert len(pd.read_csv(out / "timings.csv")) == 17
+    finally:
+        torch.set_num_threads(torch_threads)
+
+
+@pytest.mark.parametrize("recipe,flags", [
+    ("bc_image", ["--trunk.pad", "--trunk.feature-dim", "--loss-function", "--epochs", "--resume"]),
+    ("dt_image", ["--trunk.pad", "--model.context-len", "--updates", "--eval-rtg", "--lambda-entropy"]),
+])
+def test_help(recipe, flags, capsys):
+    from .conftest import load_recipe
+
+    with pytest.raises(SystemExit) as exc:
+        load_recipe(recipe).main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for flag in flags:
+        assert flag in out, flag
+
+
+def test_table1_help_and_quick_preset(capsys):
+    bench = load_benchmark()
+    from trakdis.utils.config import parse_config
+
+    cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--seeds", "2"], presets=bench.PRESETS)
+    assert cfg.trials == 20 and cfg.seeds == 2 and "--offline-updates" in cfg.teacher_args
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--help"])
+    assert exc.value.code == 0 and "--seeds" in capsys.readouterr().out
