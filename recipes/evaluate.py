@@ -46,10 +46,9 @@ class EvaluateConfig(RunConfig):
     target_return: Optional[float] = None
     """initial return-to-go of a DT policy (default: the one saved with it)"""
     num_envs: int = 2
-    """environments stepped together (batched rollouts); the episodes' configurations depend on it"""
-    parallel: bool = True
-    """step them in worker processes, one core each (ParallelEnv); --no-parallel: in turn in this
-    process (SerialEnv; the same episodes and numbers)"""
+    """environments stepped together (batched rollouts)"""
+    parallel: bool = False
+    """step them in subprocesses (ParallelEnv) instead of in turn (SerialEnv)"""
     videos: int = 2
     """extra episodes recorded as videos (0: none)"""
     video_size: int = 192
