@@ -256,7 +256,8 @@ def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatc
 def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     """recipes/pipeline.py: teacher, encoder, student and the three evaluations, then one table;
     a second call finds every stage's output and only rebuilds the table."""
-    teacher = " ".join(map(str, online_dt_args("unused")[2:]))
+    # --no-parallel: the same numbers (test_online_dt_serial_envs...), without starting worker processes
+    teacher = " ".join(map(str, [*online_dt_args("unused")[2:], "--no-parallel"]))
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
                                  "--channels", 4, 4, 4, 4, "--hidden-dim", 16]))
     student = "--rounds 1 --updates-per-round 2 --episodes-per-round 2 --eval-episodes 2 --batch-size 8 --loss-function mse"
