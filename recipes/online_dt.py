@@ -1,7 +1,7 @@
 """The privileged teacher: a Decision Transformer on the true reduced state, trained offline on
 expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in TraKDis.
 
-    python recipes/online_dt.py                       # ClothFold, under 10 minutes on 2 CPU cores
+    python recipes/online_dt.py                       # ClothFold (time per phase: docs/recipes/online_dt.md)
     python recipes/online_dt.py --preset paper        # the paper's model and optimiser (slow on a CPU)
     python recipes/online_dt.py --resume              # continue the latest run after a kill
 
