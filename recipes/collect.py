@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import torch
@@ -22,6 +22,7 @@ import torch
 from trakdis.envs.specs import TaskName
 from trakdis.utils.config import parse_config
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
+from trakdis.utils.phases import available_workers
 
 
 @dataclass
@@ -44,8 +45,8 @@ class CollectConfig:
     """dataset directory (default: <root>/<task>_<episodes>ep_h<horizon>_noise<sigma>[_px<size>])"""
     root: str = DataConfig.root
     """where default dataset directories live"""
-    num_envs: int = DataConfig.num_envs
-    """environments stepped together"""
+    num_envs: int = field(default_factory=available_workers)
+    """environments stepped together, one worker process each when > 1 (default: the available cores, at most 2)"""
     seed: int = 0
     """seed of the expert noise and of the environments"""
     threads: int = 1

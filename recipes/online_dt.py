@@ -1,7 +1,7 @@
 """The privileged teacher: a Decision Transformer on the true reduced state, trained offline on
 expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in TraKDis.
 
-    python recipes/online_dt.py                       # ClothFold, under 10 minutes on 2 CPU cores
+    python recipes/online_dt.py                       # ClothFold (time per phase: docs/recipes/online_dt.md)
     python recipes/online_dt.py --preset paper        # the paper's model and optimiser (slow on a CPU)
     python recipes/online_dt.py --resume              # continue the latest run after a kill
 
@@ -12,26 +12,38 @@ expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in Tra
    (``--exploration mean|sample``) with the return-to-go ``--exploration-rtg``, add them to the
    buffer (``--buffer-replacement``: a rollout replaces the lowest-return trajectory if it beats
    it, or the oldest one as in Online DT), ``--updates-per-round`` updates].
-4. Evaluation (mean action, eval split, return-to-go ``--eval-rtg``) after offline pretraining,
-   every ``--eval-every`` rounds and at the end; the expert is evaluated on the same episodes.
+4. Evaluation (mean action, eval split, return-to-go ``--eval-rtg``, ``--eval-episodes`` episodes)
+   after offline pretraining and at the end (and every ``--eval-every`` rounds if asked); the
+   scripted expert plays the same episodes once, its scores cached in
+   ``<data.root>/expert_scores/`` for later runs (``--no-expert-cache``: measure again).
+
+Every batch of episodes (collection, evaluation, online rollouts) runs on ``--num-envs``
+environments in worker processes (``ParallelEnv``; default: one per available core, at most 2).
+The run ends with a table of the phases: wall and CPU seconds, episodes simulated.
 
 Writes ``runs/online_dt/<name>/``: ``config.json``, ``log.csv``, ``curves.png``,
 ``checkpoint.pt`` (resume), ``policy_offline.pt`` and ``policy.pt`` (for evaluate.py/distill.py).
 """
 from __future__ import annotations
 
+import json
+import os
 import sys
 import time
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
+import numpy as np
 import torch
 
 from trakdis.envs.specs import TaskName
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
-from trakdis.utils.checkpoint import rng_state, set_rng_state
-from trakdis.utils.evaluation import run_episodes
-from trakdis.utils.policies import PolicyHandle, StateNormalizer, close_env, load_policy, save_policy
+from trakdis.utils.checkpoint import atomic_write_bytes, rng_state, set_rng_state
+from trakdis.utils.evaluation import EpisodeResults, paired_difference, run_episodes, standard_error, summarize
+from trakdis.utils.expert_scores import expert_score_key, expert_score_path, read_expert_scores, write_expert_scores
+from trakdis.utils.phases import PhaseTimer, available_workers
+from trakdis.utils.policies import (PolicyHandle, StateNormalizer, close_env, load_policy, save_policy,
+                                    start_in_background)
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.training import ModelConfig, OptimConfig, episode_to_trajectory, mean_metrics
@@ -102,16 +114,24 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     eval_rtg: Optional[float] = None
     """initial return-to-go at evaluation (default: the best return of the offline data; the paper
     uses -1 on SoftGym's reward scale)"""
-    eval_episodes: int = 40
-    """evaluation episodes (eval split; the standard error of the mean is about 0.05 at 40); the paper uses 100"""
-    eval_every: int = 4
-    """evaluate every N online rounds (and always after pretraining and at the end)"""
+    eval_episodes: int = 30
+    """evaluation episodes (eval split; the same configurations for every evaluation of a run, so the
+    online gain is a paired difference; standard error of a teacher's score 0.05-0.08 at 30, printed
+    with every score); the paper uses 100"""
+    eval_every: int = 0
+    """also evaluate every N online rounds (0: only after pretraining and at the end)"""
     eval_expert: bool = True
     """also evaluate the scripted expert on the evaluation episodes, for comparison"""
-    num_envs: int = 2
-    """environments stepped together"""
-    parallel: bool = False
-    """step them in subprocesses (ParallelEnv); SerialEnv otherwise"""
+    expert_cache: bool = True
+    """reuse the expert's evaluation cached in <data.root>/expert_scores/ (measured once per task,
+    horizon, --eval-episodes, seed and --num-envs; the expert is deterministic); --no-expert-cache
+    measures it again and replaces the cached file"""
+    num_envs: int = field(default_factory=available_workers)
+    """environments stepped together (default: the available cores, at most 2); the evaluation
+    episodes' configurations depend on it, so compare runs of the same count"""
+    parallel: bool = True
+    """step them in worker processes (ParallelEnv), one core each; --no-parallel: in turn in this
+    process (SerialEnv; the same episodes and numbers)"""
     log_every: int = 50
     """log training metrics every N updates"""
     checkpoint_every: int = 500
@@ -133,29 +153,65 @@ PRESETS = {
 }
 
 
-def evaluate(run: Run, handle: PolicyHandle, env, cfg: OnlineDTConfig, step: int, tag: str) -> float:
+def evaluate(run: Run, handle: PolicyHandle, env, cfg: OnlineDTConfig, step: int, tag: str) -> EpisodeResults:
     actor = handle.actor
     was_training = actor.training if actor is not None else False
-    # Every evaluation replays the same eval-split configurations (same seed): scores are comparable.
+    # Every evaluation replays the same eval-split configurations (same seed): scores are comparable,
+    # and the online gain is a paired difference.
     res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.eval_episodes, max_steps=cfg.horizon,
                        desc=f"eval ({tag})", seed=cfg.seed + 10_000)
     if actor is not None:
         actor.train(was_training)
-    s = res.summary()
-    prefix = "eval" if handle.kind != "expert" else "eval_expert"
+    log_scores(run, step, "eval" if handle.kind != "expert" else "eval_expert", tag, res.final_performance,
+               res.returns, detail=res.rate())
+    return res
+
+
+def log_scores(run: Run, step: int, prefix: str, tag: str, scores, returns, detail: str = "") -> None:
+    s = summarize(scores)
     run.log(step, {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"],
-                   f"{prefix}/return": float(res.returns.mean())})
-    run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} "
-              f"(return {res.returns.mean():.3f}, {s['n']} eval episodes)")
-    return s["mean"]
+                   f"{prefix}/return": float(np.mean(returns))})
+    run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} (std; standard error "
+              f"{standard_error(scores):.3f}; return {np.mean(returns):.3f}, {s['n']} eval episodes)"
+              + (f"; {detail}" if detail else ""))
+
+
+def expert_baseline(run: Run, env, cfg: OnlineDTConfig, phases: PhaseTimer) -> np.ndarray:
+    """The scripted expert's scores on the evaluation episodes: from the cache next to the datasets,
+    or measured on ``env`` (the teacher's evaluation env: the expert ignores its return-to-go) and cached."""
+    key = expert_score_key(task=cfg.task, split="eval", horizon=cfg.horizon, episodes=cfg.eval_episodes,
+                           seed=cfg.seed + 10_000, num_envs=cfg.num_envs)
+    path = expert_score_path(cfg.data.root, key)
+    cached = read_expert_scores(path, key) if cfg.expert_cache else None
+    if cached is not None:
+        scores, returns = cached
+        log_scores(run, 0, "eval_expert", "scripted expert", scores, returns,
+                   detail=f"measured once, cached in {path}")
+        return scores
+    expert = load_policy("expert", task=cfg.task, horizon=cfg.horizon)
+    with phases.phase("expert evaluation", episodes=cfg.eval_episodes, workers=cfg.num_envs):
+        res = evaluate(run, expert, env, cfg, 0, "scripted expert")
+    write_expert_scores(path, key, res.final_performance, returns=res.returns, seconds=res.seconds)
+    run.print(f"scripted expert's scores cached in {path} (later runs of this configuration reuse them)")
+    return res.final_performance
+
+
+def _episodes_done(partial) -> int:
+    """Episodes an interrupted collection already wrote (0 if its progress file is unreadable)."""
+    try:
+        return int(json.loads((partial / "progress.json").read_text())["episodes_done"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
 
 
 def main(argv=None) -> dict:
     run = Run.start("online_dt", OnlineDTConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
+    from trakdis.data import partial_path
     from trakdis.envs import task_spec
     from trakdis.modules import make_dt_actor
     from trakdis.objectives import MaskedOnlineDTLoss
+    from trakdis.utils.datasets import default_dataset_path
 
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     dt_cfg = cfg.model.dt_config(spec.state_dim, spec.action_dim, cfg.horizon)
@@ -167,14 +223,26 @@ def main(argv=None) -> dict:
     run.print(f"{cfg.task}: DT with {n_params / 1e6:.2f}M parameters ({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
 
     counters = {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
-                "normalizer": None, "buffer_capacity": cfg.buffer_capacity}
+                "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None, "phases": {}}
     state = run.resume_state()
     if state is not None:
         counters.update(state["counters"])
         trajectories = lengths = None
-    else:
-        dataset = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
-                                 log=run.print, progress=cfg.progress)
+    phases = PhaseTimer(counters["phases"])
+    if state is None:
+        path = default_dataset_path(cfg.data, task=cfg.task, horizon=cfg.horizon, pixels=True)
+        before = 0 if not partial_path(path).exists() else _episodes_done(partial_path(path))
+        with phases.phase("dataset collection", workers=cfg.data.num_envs) as rec:
+            collecting = not (path / "meta.json").exists()
+            dataset = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
+                                     log=run.print, progress=cfg.progress)
+            if collecting:
+                rec["episodes"] += cfg.data.episodes - before
+        if collecting:
+            n, secs = cfg.data.episodes - before, rec["wall"]
+            run.print(f"collected {n} episodes in {secs:.1f} s, {cfg.data.num_envs} workers: "
+                      f"{n / max(secs, 1e-9):.2f} episodes/s, {n * cfg.horizon / max(secs, 1e-9) / cfg.data.num_envs:.1f} "
+                      f"steps/s per worker")
         trajectories, lengths = load_trajectories(dataset, keys=("state", "action", "reward", "normalized_performance"))
         trajectories = trajectories.to_tensordict()
         valid = torch.arange(trajectories.shape[1]).unsqueeze(0) < lengths.unsqueeze(1)
@@ -207,6 +275,7 @@ def main(argv=None) -> dict:
         buffer.load_offline(trajectories, lengths)
 
     def checkpoint():
+        counters["phases"] = phases.state_dict()
         run.save_checkpoint({"updater": updater.state_dict(), "buffer": buffer.state_dict(),
                              "counters": counters, "rng": rng_state()}, step=counters["updates"])
 
@@ -217,62 +286,70 @@ def main(argv=None) -> dict:
     eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else counters["best_return"]
     handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
                           target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
+    explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
     eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
+    explore_env = None
+    if counters["rounds"] < cfg.online_rounds:
+        explore_env = handle.make_env(num_envs=cfg.num_envs, split="train", parallel=cfg.parallel,
+                                      target_return=explore_rtg)
     if state is not None:  # after building the envs, so the RNG streams continue exactly
         set_rng_state(state["rng"])
+    starting = None
     try:
         # ---------------------------------------------------------------- expert baseline
         if cfg.eval_expert and counters["expert_eval"] is None:
-            expert = load_policy("expert", task=cfg.task, horizon=cfg.horizon)
-            expert_env = expert.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
-            try:
-                counters["expert_eval"] = evaluate(run, expert, expert_env, cfg, 0, "scripted expert")
-            finally:
-                close_env(expert_env)
+            counters["expert_eval"] = float(np.mean(expert_baseline(run, eval_env, cfg, phases)))
 
         # ---------------------------------------------------------------- offline pretraining
         history = []
         bar = progress(total=cfg.offline_updates, initial=min(counters["updates"], cfg.offline_updates), desc="offline")
-        while counters["updates"] < cfg.offline_updates:
-            if run.should_stop(counters["updates"]):
-                checkpoint()
-                run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
-                return counters
-            history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
-            counters["updates"] += 1
-            bar.update(1)
-            u = counters["updates"]
-            if u % cfg.log_every == 0 or u == cfg.offline_updates:
-                run.log(u, {**mean_metrics(history), "phase": 0})
-                history = []
-            if u % cfg.checkpoint_every == 0 and u < cfg.offline_updates:
-                checkpoint()
+        # the env workers start (spawn, imports) on the core that training leaves idle
+        starting = start_in_background(eval_env, *([explore_env] if explore_env is not None else []))
+        with phases.phase("offline training"):
+            while counters["updates"] < cfg.offline_updates:
+                if run.should_stop(counters["updates"]):
+                    checkpoint()
+                    run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
+                    return counters
+                history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
+                counters["updates"] += 1
+                bar.update(1)
+                u = counters["updates"]
+                if u % cfg.log_every == 0 or u == cfg.offline_updates:
+                    run.log(u, {**mean_metrics(history), "phase": 0})
+                    history = []
+                if u % cfg.checkpoint_every == 0 and u < cfg.offline_updates:
+                    checkpoint()
         bar.close()
+        with phases.phase("env worker start (after training)"):  # what training did not hide
+            starting.join()
         if counters["offline_eval"] is None:
-            counters["offline_eval"] = evaluate(run, handle, eval_env, cfg, counters["updates"], "after offline pretraining")
+            with phases.phase("evaluation (offline teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
+                res = evaluate(run, handle, eval_env, cfg, counters["updates"], "after offline pretraining")
+            counters["offline_eval"] = float(res.final_performance.mean())
+            counters["offline_scores"] = res.final_performance.tolist()
             policy_file(run.dir / "policy_offline.pt")
             checkpoint()
 
         # ---------------------------------------------------------------- online fine-tuning
         if counters["rounds"] < cfg.online_rounds:
-            explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
             updater.set_constant_lr(cfg.online_lr if cfg.online_lr is not None else cfg.lr * cfg.min_lr_fraction)
-            explore_env = handle.make_env(num_envs=cfg.num_envs, split="train", parallel=cfg.parallel,
-                                          target_return=explore_rtg)
             try:
                 while counters["rounds"] < cfg.online_rounds:
-                    res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
-                                       max_steps=cfg.horizon, deterministic=cfg.exploration == "mean",
-                                       keep_episodes=True, desc="rollout",
-                                       seed=cfg.seed + 1000 * (counters["rounds"] + 1))
+                    with phases.phase("online rollouts", episodes=cfg.episodes_per_round, workers=cfg.num_envs):
+                        res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
+                                           max_steps=cfg.horizon, deterministic=cfg.exploration == "mean",
+                                           keep_episodes=True, desc="rollout",
+                                           seed=cfg.seed + 1000 * (counters["rounds"] + 1))
                     actor.train()
                     kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
                                for ep in (res.episodes if not cfg.offline_control else ()))
                     counters["rounds"] += 1
-                    history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
-                               progress(range(cfg.updates_per_round), desc=f"round {counters['rounds']}")]
+                    with phases.phase("online updates"):
+                        history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
+                                   progress(range(cfg.updates_per_round), desc=f"round {counters['rounds']}")]
                     counters["updates"] += cfg.updates_per_round
                     run.log(counters["updates"], {**mean_metrics(history), "phase": 1,
                                                   "online/normalized_performance": float(res.final_performance.mean()),
@@ -282,30 +359,59 @@ def main(argv=None) -> dict:
                     run.print(f"round {counters['rounds']}/{cfg.online_rounds}: rollout normalized performance "
                               f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f} "
                               f"({kept} kept; buffer {buffer.online_fraction:.0%} online), "
-                              f"loss_nll {run.logger.last('train/loss_nll'):.3f}")
-                    if counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.online_rounds:
-                        evaluate(run, handle, eval_env, cfg, counters["updates"], f"after round {counters['rounds']}")
+                              f"loss_nll {run.logger.last('train/loss_nll'):.3f}; {res.rate()}")
+                    if cfg.eval_every and counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.online_rounds:
+                        with phases.phase("evaluation (mid-run)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
+                            evaluate(run, handle, eval_env, cfg, counters["updates"], f"after round {counters['rounds']}")
                     checkpoint()
                     if run.should_stop(counters["updates"]):
                         run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
                         return counters
             finally:
                 close_env(explore_env)
+                explore_env = None
 
-        final = evaluate(run, handle, eval_env, cfg, counters["updates"], "after online fine-tuning")
+        with phases.phase("evaluation (final teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
+            res = evaluate(run, handle, eval_env, cfg, counters["updates"], "after online fine-tuning")
     finally:
-        close_env(eval_env)
+        with phases.phase("env worker shutdown"):
+            try:
+                if starting is not None:  # never hides an error in flight; raises its own otherwise
+                    starting.join(raise_error=sys.exc_info()[1] is None)
+            finally:
+                for env in (eval_env, explore_env):
+                    if env is not None:
+                        close_env(env)
+    final, final_scores = float(res.final_performance.mean()), res.final_performance
     counters["final_eval"] = final
-    policy_file(run.dir / "policy.pt")
-    checkpoint()
-    run.finish(columns=[c for c in ("train/loss_nll", "train/entropy", "online/normalized_performance",
-                                    "eval/normalized_performance", "eval_expert/normalized_performance")
-                        if c in run.logger.frame().columns])
+    with phases.phase("files and curves"):
+        policy_file(run.dir / "policy.pt")
+        checkpoint()
+        run.finish(columns=[c for c in ("train/loss_nll", "train/entropy", "online/normalized_performance",
+                                        "eval/normalized_performance", "eval_expert/normalized_performance")
+                            if c in run.logger.frame().columns])
     summary = {"expert": counters["expert_eval"], "offline": counters["offline_eval"], "online": final}
-    run.print("eval normalized performance: "
-              + ", ".join(f"{k} {v:.3f}" for k, v in summary.items() if v is not None)
-              + f" ({cfg.eval_episodes} eval episodes); {time.time() - run.t0:.0f} s")
-    return {**counters, **summary}
+    ses = {"online": standard_error(final_scores)}
+    gain = gain_se = None
+    if counters["offline_scores"] is not None:  # None: resumed from a checkpoint of an earlier trakdis
+        offline_scores = np.asarray(counters["offline_scores"], dtype=np.float64)
+        gain, gain_se = paired_difference(offline_scores, final_scores)
+        ses["offline"] = standard_error(offline_scores)
+    run.print(f"phases ({'resumed run: earlier parts included; ' if run.resuming else ''}wall and CPU seconds, "
+              f"CPU of this process and its env workers):\n" + phases.table(total_wall=time.time() - run.t0))
+    phases_file = {"phases": phases.state_dict(), "episodes_simulated": phases.episodes,
+                   "wall_seconds_this_process": time.time() - run.t0, "num_envs": cfg.num_envs, "parallel": cfg.parallel,
+                   "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+    atomic_write_bytes(run.dir / "phases.json", (json.dumps(phases_file, indent=1) + "\n").encode())
+    run.print(f"episodes simulated: {phases.episodes} ("
+              + ", ".join(f"{k} {r['episodes']}" for k, r in phases.records.items() if r["episodes"]) + ")")
+    run.print("eval normalized performance (mean +- standard error): "
+              + ", ".join(f"{k} {v:.3f}" + (f" +- {ses[k]:.3f}" if k in ses else "") for k, v in summary.items()
+                          if v is not None)
+              + (f"; online - offline {gain:+.3f} +- {gain_se:.3f} (paired: the same {cfg.eval_episodes} eval "
+                 f"episodes)" if gain is not None else "") + f"; {time.time() - run.t0:.0f} s")
+    return {**counters, **summary, "gain": gain, "gain_se": gain_se, "offline_se": ses.get("offline"),
+            "online_se": ses["online"], "episodes_simulated": phases.episodes}
 
 
 if __name__ == "__main__":

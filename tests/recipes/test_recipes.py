@@ -10,8 +10,8 @@ import pytest
 from trakdis.utils.checkpoint import load_checkpoint
 from trakdis.utils.policies import load_policy
 
-from .conftest import (DATA, HORIZON, distill_args, kill_when, load_recipe, online_dt_args, run_recipe,
-                       start_recipe)
+from .conftest import (DATA, HORIZON, RECIPES, _env, distill_args, kill_when, load_recipe, online_dt_args,
+                       run_recipe, start_recipe)
 
 
 def read_log(run_dir):
@@ -50,6 +50,52 @@ def test_online_dt_files_and_scores(teacher):
     handle = load_policy(teacher)
     assert handle.kind == "teacher" and handle.horizon == HORIZON and handle.observation_key == "state"
     assert cv2.imread(str(teacher / "curves.png")) is not None
+    # the phase table: expert 2, offline 2, rollouts 2 x 2, after round 1 (--eval-every 1) 2, final 2 episodes
+    phases = json.loads((teacher / "phases.json").read_text())
+    assert phases["episodes_simulated"] == 12 and phases["parallel"] is True
+    assert {k: v["episodes"] for k, v in phases["phases"].items() if v["episodes"]} == {
+        "expert evaluation": 2, "evaluation (offline teacher)": 2, "online rollouts": 4, "evaluation (mid-run)": 2,
+        "evaluation (final teacher)": 2}
+    assert all(v["wall"] >= 0 and v["cpu"] >= 0 for v in phases["phases"].values())
+    # the expert's scores are cached next to the datasets
+    assert len(list((teacher.parents[2] / "datasets" / "expert_scores").glob("ClothFold_eval_h6_2ep_*.json"))) == 1
+
+
+def test_online_dt_serial_envs_and_cached_expert_give_the_same_run(workdir, dataset, teacher):
+    """--no-parallel (SerialEnv) plays the same episodes as the teacher fixture's worker processes, and
+    the expert's scores come from the cache the fixture wrote: the same log, row for row; the run ends
+    with its phases and the episodes it simulated."""
+    out = run_recipe(workdir, "online_dt", *online_dt_args("serial", "--no-parallel"))
+    assert "measured once, cached in datasets/expert_scores/ClothFold_eval_h6_2ep_" in out.stdout
+    assert "episodes simulated: 10 (evaluation (offline teacher) 2, online rollouts 4, evaluation (mid-run) 2, " \
+           "evaluation (final teacher) 2)" in out.stdout
+    table = out.stdout[out.stdout.index("phases ("):]
+    for phase in ("offline training", "online updates", "online rollouts", "evaluation (final teacher)", "total"):
+        assert f"\n{phase} " in table, phase
+    assert "expert evaluation" not in table
+    assert "online - offline" in out.stdout and "(paired: the same 2 eval episodes)" in out.stdout
+    pd.testing.assert_frame_equal(read_log(teacher), read_log(workdir / "runs" / "online_dt" / "serial"),
+                                  check_exact=False, atol=1e-5)
+
+
+def test_online_dt_damaged_expert_cache_is_an_error_naming_it(workdir, dataset):
+    import subprocess
+    import sys
+
+    from trakdis.utils.expert_scores import expert_score_key, expert_score_path
+    from trakdis.utils.phases import available_workers
+
+    key = expert_score_key(task="ClothFold", split="eval", horizon=HORIZON, episodes=2, seed=10_000,
+                           num_envs=available_workers())
+    path = expert_score_path(workdir / "damaged", key)
+    path.parent.mkdir(parents=True)
+    path.write_text('{"format": "trakdis-expert-scores", "version": 1, "key": ')  # cut short
+    args = online_dt_args("damaged", "--data.path", dataset.relative_to(workdir), "--data.root", "damaged")
+    cmd = [sys.executable, str(RECIPES / "online_dt.py"), *map(str, args)]
+    proc = subprocess.run(cmd, cwd=workdir, env=_env(), capture_output=True, text=True, timeout=240)
+    assert proc.returncode != 0
+    assert f"expert score cache damaged/expert_scores/{path.name}: not valid JSON" in proc.stderr
+    assert "delete the file to measure the expert again" in proc.stderr
 
 
 def test_online_dt_offline_control(workdir, dataset):
@@ -231,7 +277,8 @@ def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatc
 def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     """recipes/pipeline.py: teacher, encoder, student and the three evaluations, then one table;
     a second call finds every stage's output and only rebuilds the table."""
-    teacher = " ".join(map(str, online_dt_args("unused")[2:]))
+    # --no-parallel: the same numbers (test_online_dt_serial_envs...), without starting worker processes
+    teacher = " ".join(map(str, [*online_dt_args("unused")[2:], "--no-parallel"]))
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
                                  "--channels", 4, 4, 4, 4, "--hidden-dim", 16]))
     student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--eval-episodes", 2, "--batch-size", 8, *DATA]))

@@ -147,3 +147,51 @@ def test_close_env_never_masks_the_original_error():
                 close_env(Failing())
     with pytest.raises(RuntimeError, match="close failed"):  # alone, a failing close is an error
         close_env(Failing())
+
+
+def test_standard_error_and_paired_difference():
+    from trakdis.utils.evaluation import paired_difference, standard_error
+
+    assert standard_error([1.0, 2.0, 3.0, 4.0]) == pytest.approx(np.std([1, 2, 3, 4], ddof=1) / 2)
+    assert standard_error([0.5]) == 0.0
+    with pytest.raises(ValueError):
+        standard_error([])
+    # the same configurations: a constant gain has no error, however spread the scores are
+    before = np.array([0.0, 0.9, 0.2, 0.7])
+    assert paired_difference(before, before + 0.1) == pytest.approx((0.1, 0.0))
+    mean, se = paired_difference([0.0, 0.0, 0.0], [0.1, 0.2, 0.3])
+    assert mean == pytest.approx(0.2) and se == pytest.approx(standard_error([0.1, 0.2, 0.3]))
+    with pytest.raises(ValueError, match="not paired"):
+        paired_difference([0.0, 1.0], [0.0])
+
+
+def test_results_report_their_rate():
+    env = SerialEnv(2, make)
+    res = run_episodes(env, policy, 4, max_steps=5, desc=None)
+    env.close()
+    assert res.num_envs == 2 and res.seconds > 0
+    assert res.rate().startswith("4 episodes in ") and "2 envs" in res.rate() and "steps/s per env" in res.rate()
+
+
+def test_parallel_workers_play_the_same_episodes_as_serial_envs():
+    """ParallelEnv (worker processes) and SerialEnv of the same size, same seed: the same episodes,
+    value for value; another seed plays other configurations."""
+    from trakdis.utils.policies import close_env, load_policy
+
+    expert = load_policy("expert", task="ClothFold", horizon=4)
+    results = {}
+    for name, parallel, seed in (("serial", False, 3), ("parallel", True, 3), ("parallel_other_seed", True, 4)):
+        env = expert.make_env(num_envs=2, split="eval", parallel=parallel)
+        try:
+            results[name] = run_episodes(env, expert.make_policy(seed=0), 3, max_steps=4, keep_episodes=True,
+                                         desc=None, seed=seed)
+        finally:
+            close_env(env)
+    a, b, c = results["serial"], results["parallel"], results["parallel_other_seed"]
+    assert b.num_envs == 2 and len(b.episodes) == 3
+    np.testing.assert_array_equal(a.final_performance, b.final_performance)
+    np.testing.assert_array_equal(a.returns, b.returns)
+    for ea, eb in zip(a.episodes, b.episodes):
+        torch.testing.assert_close(ea["state"], eb["state"], rtol=0, atol=0)
+        torch.testing.assert_close(ea["action"], eb["action"], rtol=0, atol=0)
+    assert not torch.equal(a.episodes[0]["state"][0], c.episodes[0]["state"][0])

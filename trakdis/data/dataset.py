@@ -312,7 +312,9 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
     # trained with 2 OpenMP threads afterwards, ~5x slower per update on a loaded 2-core machine.
     threads = torch.get_num_threads()
     if chunks_done < num_chunks:
-        env = ParallelEnv(W, env_fn, mp_start_method=mp_start_method) if W > 1 else env_fn()
+        # use_buffers=False: with shared buffers TorchRL 0.14's main process busy-waits while the workers
+        # step, taking a core from them on a 2-core machine (benchmarks/env_speed.py; the data are the same)
+        env = ParallelEnv(W, env_fn, mp_start_method=mp_start_method, use_buffers=False) if W > 1 else env_fn()
         policy = _ReseedablePolicy(policy_fn)
         collector = Collector(
             env, policy, frames_per_batch=W * horizon, total_frames=-1, reset_at_each_iter=True,

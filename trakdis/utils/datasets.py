@@ -6,7 +6,7 @@ automatically (an interrupted collection resumes when the same command runs agai
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -14,6 +14,8 @@ import torch
 from tensordict import TensorDict
 
 from trakdis.data import DatasetError
+
+from .phases import available_workers
 
 __all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "load_trajectories", "make_buffer"]
 
@@ -32,8 +34,9 @@ class DataConfig:
     """std of the Gaussian noise on the collecting expert's picker movements: diverse, sub-optimal data
     that online fine-tuning can improve on (measured on ClothFold, 40 train episodes: 0.1 -> 0.838,
     0.15 -> 0.762 normalized performance; noise-free expert 0.826 on the eval split)"""
-    num_envs: int = 2
-    """environments stepped together while collecting (worker processes when > 1)"""
+    num_envs: int = field(default_factory=available_workers)
+    """environments stepped together while collecting, one worker process each when > 1 (default: the
+    available cores, at most 2; also the chunk size, so a dataset's episodes depend on it)"""
 
 
 def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bool, image_size: int = 32) -> Path:

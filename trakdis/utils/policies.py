@@ -29,6 +29,7 @@ from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 __all__ = [
     "close_env",
+    "start_in_background",
     "make_batched_env",
     "make_acting_env",
     "PolicyHandle",
@@ -78,6 +79,47 @@ def close_env(env) -> None:
                       f"{type(in_flight).__name__} was being raised; raising that one", RuntimeWarning, stacklevel=2)
     finally:
         torch.set_num_threads(threads)
+
+
+class start_in_background:
+    """Start the worker processes of ``ParallelEnv`` s (bare or inside a ``TransformedEnv``) in a
+    thread, while this process goes on with something else, e.g. training on its own core.
+
+    TorchRL starts a ``ParallelEnv``'s workers lazily, at its first reset, and then waits for each
+    to import torch, TorchRL and MuJoCo (spawned processes: about 6 CPU seconds a worker here). This
+    calls TorchRL's own ``start()`` earlier, from a thread (TorchRL has no non-blocking start); the
+    envs are otherwise untouched. ``join()`` (also on exit of a ``with`` block) waits for it and
+    re-raises a failure; call it before using or closing the envs."""
+
+    def __init__(self, *envs):
+        import threading
+
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._start, args=(envs,), name="trakdis-env-start", daemon=True)
+        self._thread.start()
+
+    def _start(self, envs) -> None:
+        from torchrl.envs import ParallelEnv
+
+        try:
+            for env in envs:
+                base = getattr(env, "base_env", env)
+                if isinstance(base, ParallelEnv) and base.is_closed:
+                    base.start()
+        except BaseException as err:  # re-raised by join(), in the caller's thread
+            self.error = err
+
+    def join(self, raise_error: bool = True) -> None:
+        self._thread.join()
+        if self.error is not None and raise_error:
+            err, self.error = self.error, None
+            raise err
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.join()
 
 
 def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, seed: int | None = None,

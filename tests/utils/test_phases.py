@@ -1,0 +1,55 @@
+"""PhaseTimer: wall and CPU seconds (worker processes included) and episodes per phase."""
+import subprocess
+import sys
+import time
+
+import pytest
+
+from trakdis.utils.phases import PhaseTimer, available_workers, process_tree_cpu_seconds
+
+BURN = "import time\nt = time.process_time()\nwhile time.process_time() - t < {s}: pass\n"
+
+
+def test_phases_accumulate_and_table():
+    timer = PhaseTimer()
+    with timer.phase("collect", episodes=4, workers=2):
+        time.sleep(0.05)
+    with timer.phase("train"):
+        t = time.process_time()
+        while time.process_time() - t < 0.1:
+            pass
+    with timer.phase("collect", episodes=2, workers=2) as rec:
+        rec["episodes"] += 1  # counted inside the block
+    assert list(timer.records) == ["collect", "train"]
+    assert timer.records["collect"]["episodes"] == 7 and timer.episodes == 7
+    assert timer.records["collect"]["wall"] >= 0.05 and timer.records["train"]["cpu"] >= 0.09
+    table = timer.table(total_wall=timer.wall + 1.0).splitlines()
+    assert table[0].split()[:4] == ["phase", "wall", "s", "CPU"]
+    assert table[1].startswith("collect") and table[1].split()[3] == "7" and table[1].split()[-1] == "2"
+    assert table[-2].startswith("other") and table[-1].startswith("total") and table[-1].split()[3] == "7"
+    again = PhaseTimer(timer.state_dict())  # a resumed run goes on from the saved records
+    with again.phase("train", episodes=0):
+        pass
+    assert again.records["collect"] == timer.records["collect"] and again.episodes == 7
+
+
+def test_phase_is_recorded_when_the_block_raises():
+    timer = PhaseTimer()
+    with pytest.raises(RuntimeError):
+        with timer.phase("eval", episodes=3):
+            raise RuntimeError("boom")
+    assert timer.records["eval"]["episodes"] == 3 and timer.records["eval"]["wall"] >= 0
+
+
+def test_cpu_of_worker_processes_is_counted():
+    before = process_tree_cpu_seconds()
+    child = subprocess.Popen([sys.executable, "-c", BURN.format(s=0.5)])
+    time.sleep(0.3)
+    alive = process_tree_cpu_seconds() - before  # a live child, read from /proc
+    child.wait()
+    after = process_tree_cpu_seconds() - before  # a finished child, from RUSAGE_CHILDREN
+    assert after >= 0.45 and alive >= 0.0
+
+
+def test_available_workers():
+    assert 1 <= available_workers() <= 2 and available_workers(cap=1) == 1

@@ -1,0 +1,130 @@
+"""Where a recipe's time goes: wall and CPU seconds, and simulated episodes, per phase.
+
+    phases = PhaseTimer()
+    with phases.phase("offline training"):
+        ...
+    with phases.phase("evaluation", episodes=40):
+        ...
+    print(phases.table())
+
+CPU seconds count this process and its worker processes (a ``ParallelEnv``'s or a collector's
+workers), so that on a shared machine, where wall time moves with the other jobs, the work
+itself can still be compared: ``wall ~= CPU / workers`` on an idle machine with one core per worker.
+"""
+from __future__ import annotations
+
+import os
+import resource
+import time
+from contextlib import contextmanager
+from typing import Any, Iterator, Mapping
+
+__all__ = ["PhaseTimer", "available_workers", "process_tree_cpu_seconds"]
+
+
+def available_workers(cap: int = 2) -> int:
+    """CPU cores this process may run on (its affinity mask), at most ``cap``: the default number
+    of environments stepped in parallel."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(int(cap), cores))
+
+
+def _descendants_cpu_seconds() -> float:
+    """CPU seconds (user + system, with their own reaped children) of the live descendants of this
+    process, read from ``/proc`` (Linux; 0 elsewhere). Finished children are counted by
+    ``RUSAGE_CHILDREN`` instead, once they were waited for."""
+    me = os.getpid()
+    try:
+        pids = [int(p) for p in os.listdir("/proc") if p.isdigit()]
+    except OSError:
+        return 0.0
+    parent, ticks = {}, {}
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat", "rb") as f:
+                stat = f.read().decode(errors="replace")
+        except OSError:  # exited meanwhile, or not readable
+            continue
+        fields = stat[stat.rfind(")") + 2:].split()  # after "pid (comm) "
+        try:
+            parent[pid] = int(fields[1])
+            ticks[pid] = sum(int(v) for v in fields[11:15])  # utime stime cutime cstime
+        except (IndexError, ValueError):
+            continue
+    total, frontier = 0, [me]
+    while frontier:
+        kids = [pid for pid, ppid in parent.items() if ppid in frontier]
+        total += sum(ticks[pid] for pid in kids)
+        frontier = kids
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def process_tree_cpu_seconds() -> float:
+    """CPU seconds used so far by this process, its finished children and its live descendants."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime + _descendants_cpu_seconds()
+
+
+class PhaseTimer:
+    """Per phase: ``wall`` and ``cpu`` seconds and ``episodes`` simulated, accumulated over every
+    ``with timer.phase(name)`` block of that name (in first-use order). ``state_dict`` /
+    ``load_state_dict`` (plain floats) let a resumed run report the phases of its earlier part."""
+
+    def __init__(self, state: Mapping[str, Mapping[str, Any]] | None = None):
+        self.records: dict[str, dict[str, float]] = {}
+        if state:
+            self.load_state_dict(state)
+
+    def _record(self, name: str) -> dict[str, float]:
+        return self.records.setdefault(name, {"wall": 0.0, "cpu": 0.0, "episodes": 0, "workers": 1})
+
+    @contextmanager
+    def phase(self, name: str, *, episodes: int = 0, workers: int = 1) -> Iterator[dict[str, float]]:
+        """Time the block; the yielded record's ``"episodes"`` may be raised inside it."""
+        rec = self._record(name)
+        rec["episodes"] += int(episodes)
+        rec["workers"] = max(int(rec["workers"]), int(workers))
+        wall, cpu = time.perf_counter(), process_tree_cpu_seconds()
+        try:
+            yield rec
+        finally:
+            rec["wall"] += time.perf_counter() - wall
+            rec["cpu"] += max(0.0, process_tree_cpu_seconds() - cpu)
+
+    def add(self, name: str, *, episodes: int = 0, wall: float = 0.0, cpu: float = 0.0) -> None:
+        rec = self._record(name)
+        rec["episodes"] += int(episodes)
+        rec["wall"] += float(wall)
+        rec["cpu"] += float(cpu)
+
+    @property
+    def episodes(self) -> int:
+        return int(sum(r["episodes"] for r in self.records.values()))
+
+    @property
+    def wall(self) -> float:
+        return float(sum(r["wall"] for r in self.records.values()))
+
+    def state_dict(self) -> dict[str, dict[str, float]]:
+        return {k: dict(v) for k, v in self.records.items()}
+
+    def load_state_dict(self, state: Mapping[str, Mapping[str, Any]]) -> None:
+        self.records = {str(k): {"wall": float(v["wall"]), "cpu": float(v["cpu"]), "episodes": int(v["episodes"]),
+                                 "workers": int(v.get("workers", 1))} for k, v in state.items()}
+
+    def table(self, total_wall: float | None = None) -> str:
+        """A plain-text table: phase, wall s, CPU s, episodes, s per episode (CPU), workers; then the totals."""
+        width = max([len("phase"), len("total"), *map(len, self.records)])
+        lines = [f"{'phase':<{width}}  {'wall s':>8}  {'CPU s':>8}  {'episodes':>8}  {'CPU s/ep':>8}  workers"]
+        for name, r in self.records.items():
+            per = f"{r['cpu'] / r['episodes']:8.2f}" if r["episodes"] else f"{'':8}"
+            lines.append(f"{name:<{width}}  {r['wall']:8.1f}  {r['cpu']:8.1f}  {r['episodes']:8d}  {per}  {r['workers']:>7d}")
+        cpu = sum(r["cpu"] for r in self.records.values())
+        wall = self.wall if total_wall is None else total_wall
+        if wall - self.wall > 0.05:
+            lines.append(f"{'other':<{width}}  {wall - self.wall:8.1f}")
+        lines.append(f"{'total':<{width}}  {wall:8.1f}  {cpu:8.1f}  {self.episodes:8d}")
+        return "\n".join(lines)
