@@ -6,8 +6,8 @@
 
 1. ``recipes/online_dt.py``: the expert dataset and the privileged teacher (by default offline,
    on states with 1 cm of Gaussian noise: ``--teacher-args``).
-2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images (and, by default,
-   a noisy expert's).
+2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
+   and those the weight-copied student visits (``--teacher``, rounds of its rollouts).
 3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
@@ -92,7 +92,7 @@ def main(argv=None) -> pd.DataFrame:
     teacher = stage(run, "online_dt", f"{name}-teacher", "policy.pt",
                     ["--task", cfg.task, *shlex.split(cfg.teacher_args)], timings)
     encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
-                    ["--task", cfg.task, *shlex.split(cfg.encoder_args)], timings)
+                    ["--task", cfg.task, "--teacher", str(teacher), *shlex.split(cfg.encoder_args)], timings)
     student = stage(run, "distill", f"{name}-student", "policy.pt",
                     ["--teacher", str(teacher), "--encoder", str(encoder), *shlex.split(cfg.student_args)], timings)
     rows = []

@@ -280,7 +280,8 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     # --no-parallel: the same numbers (test_online_dt_serial_envs...), without starting worker processes
     teacher = " ".join(map(str, [*online_dt_args("unused")[2:], "--no-parallel"]))
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
-                                 "--channels", 4, 4, 4, 4, "--hidden-dim", 16]))
+                                 "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--student-rounds", 1,
+                                 "--student-episodes", 2, "--student-epochs", 1]))
     student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--eval-episodes", 2, "--batch-size", 8, *DATA]))
     args = ["--name", "pipe", "--trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
             f"--student-args={student}", "--threads", 1]
