@@ -28,7 +28,7 @@ import torch
 from trakdis.envs.specs import TaskName
 from trakdis.modules.baselines import ImageTrunkConfig
 from trakdis.utils.checkpoint import rng_state, set_rng_state
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
+from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, real_steps
 from trakdis.utils.evaluation import run_episodes
 from trakdis.utils.policies import PolicyHandle, close_env, save_image_policy
 from trakdis.utils.progress import progress
@@ -87,12 +87,8 @@ def main(argv=None) -> dict:
     n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 and cfg.val_fraction > 0 else 0
     perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
 
-    def flat(episodes):  # the real steps of these episodes (steps past an episode's length are padding)
-        episodes = episodes.sort().values
-        valid = torch.arange(data.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
-        return data[episodes].to_tensordict()[valid]
-
-    train, val = flat(perm[n_val:]), (flat(perm[:n_val]) if n_val else None)
+    train = real_steps(data, lengths, perm[n_val:])
+    val = real_steps(data, lengths, perm[:n_val]) if n_val else None
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation steps")
 
     trunk = cfg.trunk.make(cfg.image_size).to(cfg.device)

@@ -23,7 +23,7 @@ import torch
 
 from trakdis.envs.specs import TaskName
 from trakdis.utils.checkpoint import rng_state, set_rng_state
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
+from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, real_steps
 from trakdis.utils.optim import make_optimizer
 from trakdis.utils.policies import NormalizedEncoder, save_encoder
 from trakdis.utils.progress import progress
@@ -108,16 +108,10 @@ def main(argv=None) -> dict:
     n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 else 0
     perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
     # Split by episode (images of one episode are strongly correlated).
-    # Only the real steps of each episode (steps past an episode's length are zero padding).
-    def flat(steps, lengths, episodes):
-        episodes = episodes.sort().values
-        valid = torch.arange(steps.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
-        return steps[episodes].to_tensordict()[valid]
-
-    train = flat(data, lengths, perm[n_val:])
-    val = flat(data, lengths, perm[:n_val]) if n_val else None
+    train = real_steps(data, lengths, perm[n_val:])
+    val = real_steps(data, lengths, perm[:n_val]) if n_val else None
     for extra_path, extra_data, extra_lengths in extra:  # training only: validation stays on the main dataset
-        extra_steps = flat(extra_data, extra_lengths, torch.arange(extra_data.shape[0]))
+        extra_steps = real_steps(extra_data, extra_lengths)
         train = torch.cat([train, extra_steps])
         run.print(f"training images +{extra_steps.shape[0]} from {extra_path}")
     train_states = train["state"]

@@ -17,7 +17,7 @@ from trakdis.data import DatasetError
 
 from .phases import available_workers
 
-__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "load_trajectories", "make_buffer"]
+__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "load_trajectories", "make_buffer", "real_steps"]
 
 
 @dataclass
@@ -106,6 +106,14 @@ def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tu
             raise KeyError(f"dataset {path} has no {missing}; it has {sorted(steps.keys())}{hint}")
         steps = steps.select(*keys)
     return steps, meta["lengths"]
+
+
+def real_steps(steps: TensorDict, lengths: torch.Tensor, episodes: torch.Tensor | None = None) -> TensorDict:
+    """The real steps of ``episodes`` (all by default) of ``steps [episodes, horizon]``, in episode
+    order, as one flat TensorDict (steps past an episode's length are padding)."""
+    episodes = torch.arange(steps.shape[0]) if episodes is None else episodes.sort().values
+    valid = torch.arange(steps.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
+    return steps[episodes].to_tensordict()[valid]
 
 
 def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float, keys: Sequence[str],
