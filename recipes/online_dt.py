@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from trakdis.envs.specs import TaskName
+from trakdis.evaluation.background import BackgroundEvaluation
 from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.utils.checkpoint import atomic_write_bytes, rng_state, set_rng_state
 from trakdis.utils.evaluation import EpisodeResults, paired_difference, run_episodes, standard_error, summarize
@@ -126,6 +127,13 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """reuse the expert's evaluation cached in <data.root>/expert_scores/ (measured once per task,
     horizon, --eval-episodes, seed and --num-envs; the expert is deterministic); --no-expert-cache
     measures it again and replaces the cached file"""
+    background_eval: bool = True
+    """evaluate the scripted expert and the offline teacher in a background process at low priority,
+    on the CPU time that training leaves idle (the same episodes and numbers; --no-background-eval:
+    in turn, in this process)"""
+    collect_pixels: bool = False
+    """also store the 32x32 images in the dataset this run collects (pipeline.py: train_encoder.py
+    reuses it); the teacher reads states only, and an existing dataset with images is used as it is"""
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together (default: the available cores, at most 2); the evaluation
     episodes' configurations depend on it, so compare runs of the same count"""
@@ -176,9 +184,30 @@ def log_scores(run: Run, step: int, prefix: str, tag: str, scores, returns, deta
               + (f"; {detail}" if detail else ""))
 
 
-def expert_baseline(run: Run, env, cfg: OnlineDTConfig, phases: PhaseTimer) -> np.ndarray:
+def background_evaluation(spec, cfg: OnlineDTConfig, phases: PhaseTimer, what: str) -> BackgroundEvaluation:
+    """``evaluate`` of the policy file ``spec`` in a background process (the same episodes)."""
+    job = BackgroundEvaluation(spec, task=cfg.task, horizon=cfg.horizon, num_episodes=cfg.eval_episodes,
+                               num_envs=cfg.num_envs, env_seed=cfg.seed + 10_000, policy_seed=cfg.seed)
+    phases.exclude(job.pid)
+    return job
+
+
+def finish_background(run: Run, job: BackgroundEvaluation, phases: PhaseTimer, cfg: OnlineDTConfig, what: str,
+                      step: int, prefix: str, tag: str) -> EpisodeResults:
+    """Wait for a background evaluation, book its time and log its scores at ``step``."""
+    with phases.phase(f"waiting for the background evaluation ({what})"):
+        res = job.result()  # its CPU seconds join RUSAGE_CHILDREN here: booked to its own row at once
+        phases.add_background(f"evaluation ({what}, background)", job.pid, episodes=cfg.eval_episodes,
+                              wall=job.wall_seconds, cpu=job.cpu_seconds, workers=1)
+    log_scores(run, step, prefix, tag, res.final_performance, res.returns,
+               detail=f"{cfg.eval_episodes} episodes in {job.wall_seconds:.0f} s in a background process")
+    return res
+
+
+def expert_baseline(run: Run, env, cfg: OnlineDTConfig, phases: PhaseTimer) -> np.ndarray | BackgroundEvaluation:
     """The scripted expert's scores on the evaluation episodes: from the cache next to the datasets,
-    or measured on ``env`` (the teacher's evaluation env: the expert ignores its return-to-go) and cached."""
+    or measured (in a background process with --background-eval, whose results the caller caches;
+    else on ``env``, the teacher's evaluation env: the expert ignores its return-to-go) and cached."""
     key = expert_score_key(task=cfg.task, split="eval", horizon=cfg.horizon, episodes=cfg.eval_episodes,
                            seed=cfg.seed + 10_000, num_envs=cfg.num_envs)
     path = expert_score_path(cfg.data.root, key)
@@ -188,6 +217,10 @@ def expert_baseline(run: Run, env, cfg: OnlineDTConfig, phases: PhaseTimer) -> n
         log_scores(run, 0, "eval_expert", "scripted expert", scores, returns,
                    detail=f"measured once, cached in {path}")
         return scores
+    if cfg.background_eval:
+        job = background_evaluation("expert", cfg, phases, "scripted expert")
+        job.cache_path, job.cache_key = path, key
+        return job
     expert = load_policy("expert", task=cfg.task, horizon=cfg.horizon)
     with phases.phase("expert evaluation", episodes=cfg.eval_episodes, workers=cfg.num_envs):
         res = evaluate(run, expert, env, cfg, 0, "scripted expert")
@@ -230,11 +263,13 @@ def main(argv=None) -> dict:
         trajectories = lengths = None
     phases = PhaseTimer(counters["phases"])
     if state is None:
-        path = default_dataset_path(cfg.data, task=cfg.task, horizon=cfg.horizon, pixels=True)
+        pixels = cfg.collect_pixels or (default_dataset_path(cfg.data, task=cfg.task, horizon=cfg.horizon,
+                                                             pixels=True) / "meta.json").exists()
+        path = default_dataset_path(cfg.data, task=cfg.task, horizon=cfg.horizon, pixels=pixels)
         before = 0 if not partial_path(path).exists() else _episodes_done(partial_path(path))
         with phases.phase("dataset collection", workers=cfg.data.num_envs) as rec:
             collecting = not (path / "meta.json").exists()
-            dataset = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
+            dataset = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=pixels,
                                      log=run.print, progress=cfg.progress)
             if collecting:
                 rec["episodes"] += cfg.data.episodes - before
@@ -294,11 +329,15 @@ def main(argv=None) -> dict:
                                       target_return=explore_rtg)
     if state is not None:  # after building the envs, so the RNG streams continue exactly
         set_rng_state(state["rng"])
-    starting = None
+    starting = offline_res = expert_job = offline_job = None
     try:
         # ---------------------------------------------------------------- expert baseline
         if cfg.eval_expert and counters["expert_eval"] is None:
-            counters["expert_eval"] = float(np.mean(expert_baseline(run, eval_env, cfg, phases)))
+            expert = expert_baseline(run, eval_env, cfg, phases)
+            if isinstance(expert, BackgroundEvaluation):
+                expert_job = expert
+            else:
+                counters["expert_eval"] = float(np.mean(expert))
 
         # ---------------------------------------------------------------- offline pretraining
         history = []
@@ -324,12 +363,19 @@ def main(argv=None) -> dict:
         with phases.phase("env worker start (after training)"):  # what training did not hide
             starting.join()
         if counters["offline_eval"] is None:
-            with phases.phase("evaluation (offline teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-                res = evaluate(run, handle, eval_env, cfg, counters["updates"], "after offline pretraining")
-            counters["offline_eval"] = float(res.final_performance.mean())
-            counters["offline_scores"] = res.final_performance.tolist()
-            policy_file(run.dir / "policy_offline.pt")
-            checkpoint()
+            if not counters.get("offline_policy_saved"):  # once: a resumed run's actor has moved on
+                policy_file(run.dir / "policy_offline.pt")
+                counters["offline_policy_saved"] = True
+                checkpoint()
+            if cfg.background_eval and counters["rounds"] < cfg.online_rounds:
+                offline_job = background_evaluation(run.dir / "policy_offline.pt", cfg, phases, "offline teacher")
+            else:
+                with phases.phase("evaluation (offline teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
+                    res = offline_res = evaluate(run, handle, eval_env, cfg, counters["updates"],
+                                                 "after offline pretraining")
+                counters["offline_eval"] = float(res.final_performance.mean())
+                counters["offline_scores"] = res.final_performance.tolist()
+                checkpoint()
 
         # ---------------------------------------------------------------- online fine-tuning
         if counters["rounds"] < cfg.online_rounds:
@@ -371,9 +417,27 @@ def main(argv=None) -> dict:
                 close_env(explore_env)
                 explore_env = None
 
-        with phases.phase("evaluation (final teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-            res = evaluate(run, handle, eval_env, cfg, counters["updates"], "after online fine-tuning")
+        if cfg.online_rounds == 0 and offline_res is not None:
+            res = offline_res  # no update since: the same policy on the same episodes
+        else:
+            with phases.phase("evaluation (final teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
+                res = evaluate(run, handle, eval_env, cfg, counters["updates"], "after online fine-tuning")
+        if offline_job is not None:
+            off = finish_background(run, offline_job, phases, cfg, "offline teacher", cfg.offline_updates,
+                                    "eval", "after offline pretraining")
+            counters["offline_eval"] = float(off.final_performance.mean())
+            counters["offline_scores"] = off.final_performance.tolist()
+        if expert_job is not None:
+            off = finish_background(run, expert_job, phases, cfg, "scripted expert", 0, "eval_expert", "scripted expert")
+            write_expert_scores(expert_job.cache_path, expert_job.cache_key, off.final_performance,
+                                returns=off.returns, seconds=off.seconds)
+            run.print(f"scripted expert's scores cached in {expert_job.cache_path} (later runs of this configuration "
+                      f"reuse them)")
+            counters["expert_eval"] = float(np.mean(off.final_performance))
     finally:
+        for job in (expert_job, offline_job):
+            if job is not None and not job.done():
+                job.cancel()
         with phases.phase("env worker shutdown"):
             try:
                 if starting is not None:  # never hides an error in flight; raises its own otherwise

@@ -90,7 +90,7 @@ def main(argv=None) -> pd.DataFrame:
     name = run.dir.name
     timings: dict[str, float] = {}
     teacher = stage(run, "online_dt", f"{name}-teacher", "policy.pt",
-                    ["--task", cfg.task, *shlex.split(cfg.teacher_args)], timings)
+                    ["--task", cfg.task, "--collect-pixels", *shlex.split(cfg.teacher_args)], timings)
     encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
                     ["--task", cfg.task, "--teacher", str(teacher), *shlex.split(cfg.encoder_args)], timings)
     student = stage(run, "distill", f"{name}-student", "policy.pt",

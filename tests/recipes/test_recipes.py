@@ -54,18 +54,21 @@ def test_online_dt_files_and_scores(teacher):
     phases = json.loads((teacher / "phases.json").read_text())
     assert phases["episodes_simulated"] == 12 and phases["parallel"] is True
     assert {k: v["episodes"] for k, v in phases["phases"].items() if v["episodes"]} == {
-        "expert evaluation": 2, "evaluation (offline teacher)": 2, "online rollouts": 4, "evaluation (mid-run)": 2,
-        "evaluation (final teacher)": 2}
+        "evaluation (scripted expert, background)": 2, "evaluation (offline teacher, background)": 2,
+        "online rollouts": 4, "evaluation (mid-run)": 2, "evaluation (final teacher)": 2}
+    assert {k for k, v in phases["phases"].items() if v["background"]} == {
+        "evaluation (scripted expert, background)", "evaluation (offline teacher, background)"}
     assert all(v["wall"] >= 0 and v["cpu"] >= 0 for v in phases["phases"].values())
     # the expert's scores are cached next to the datasets
     assert len(list((teacher.parents[2] / "datasets" / "expert_scores").glob("ClothFold_eval_h6_2ep_*.json"))) == 1
 
 
 def test_online_dt_serial_envs_and_cached_expert_give_the_same_run(workdir, dataset, teacher):
-    """--no-parallel (SerialEnv) plays the same episodes as the teacher fixture's worker processes, and
-    the expert's scores come from the cache the fixture wrote: the same log, row for row; the run ends
-    with its phases and the episodes it simulated."""
-    out = run_recipe(workdir, "online_dt", *online_dt_args("serial", "--no-parallel"))
+    """--no-parallel (SerialEnv) plays the same episodes as the teacher fixture's worker processes,
+    --no-background-eval evaluates the offline teacher in this process instead of the fixture's
+    background process, and the expert's scores come from the cache the fixture wrote: the same log,
+    row for row; the run ends with its phases and the episodes it simulated."""
+    out = run_recipe(workdir, "online_dt", *online_dt_args("serial", "--no-parallel", "--no-background-eval"))
     assert "measured once, cached in datasets/expert_scores/ClothFold_eval_h6_2ep_" in out.stdout
     assert "episodes simulated: 10 (evaluation (offline teacher) 2, online rollouts 4, evaluation (mid-run) 2, " \
            "evaluation (final teacher) 2)" in out.stdout
@@ -75,7 +78,7 @@ def test_online_dt_serial_envs_and_cached_expert_give_the_same_run(workdir, data
     assert "expert evaluation" not in table
     assert "online - offline" in out.stdout and "(paired: the same 2 eval episodes)" in out.stdout
     pd.testing.assert_frame_equal(read_log(teacher), read_log(workdir / "runs" / "online_dt" / "serial"),
-                                  check_exact=False, atol=1e-5)
+                                  check_exact=False, atol=1e-5, check_like=True)  # columns in logging order
 
 
 def test_online_dt_damaged_expert_cache_is_an_error_naming_it(workdir, dataset):
@@ -123,7 +126,8 @@ def test_online_dt_sigkill_then_resume_matches_uninterrupted(workdir, dataset, t
     out = run_recipe(workdir, "online_dt", "--resume", "--name", "killed")
     assert f"from step {step}" in out.stdout
     assert (run_dir / "policy.pt").exists()
-    pd.testing.assert_frame_equal(read_log(teacher), read_log(run_dir), check_exact=False, atol=1e-5)
+    pd.testing.assert_frame_equal(read_log(teacher), read_log(run_dir), check_exact=False, atol=1e-5,
+                                  check_like=True)  # columns in logging order
 
 
 def test_train_encoder_stop_resume(workdir, dataset, encoder):

@@ -53,3 +53,22 @@ def test_cpu_of_worker_processes_is_counted():
 
 def test_available_workers():
     assert 1 <= available_workers() <= 2 and available_workers(cap=1) == 1
+
+
+def test_excluded_background_child_is_booked_once_under_its_own_row():
+    timer = PhaseTimer()
+    child = subprocess.Popen([sys.executable, "-c", BURN.format(s=0.6)])
+    timer.exclude(child.pid)
+    with timer.phase("train"):  # the child burns CPU meanwhile: not this phase's
+        time.sleep(0.3)
+    assert timer.records["train"]["cpu"] < 0.2
+    with timer.phase("wait"):
+        child.wait()  # its CPU seconds now count in RUSAGE_CHILDREN
+        timer.add_background("eval (background)", child.pid, episodes=3, wall=0.6, cpu=0.6)
+    assert timer.records["wait"]["cpu"] < 0.2, "the finished child's CPU was booked to the phase that waited"
+    assert timer.records["eval (background)"]["cpu"] == pytest.approx(0.6)
+    assert timer.wall == pytest.approx(timer.records["train"]["wall"] + timer.records["wait"]["wall"])
+    table = timer.table()
+    assert "(" in table.splitlines()[3] and "background" in table.splitlines()[-1]
+    again = PhaseTimer(timer.state_dict())  # a resumed run keeps the row marked as background
+    assert again.background == {"eval (background)"} and again.wall == pytest.approx(timer.wall)
