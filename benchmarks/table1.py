@@ -45,7 +45,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
-from trakdis.utils.evaluation import markdown_table  # noqa: E402
+from trakdis.evaluation import markdown_table  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
 
@@ -185,7 +185,7 @@ def run_task_seed(stage: Stages, cfg: Table1Config, name: str, task: str, seed: 
     evals = {}
     for method in (m for m in METHODS if m in methods):
         if method == "expert":
-            from trakdis.utils.policies import load_policy
+            from trakdis.policies import load_policy
 
             # the expert plays episodes of the other policies' length
             horizon = load_policy(next(iter(policies.values()))).horizon if policies else 100

@@ -25,15 +25,16 @@ from typing import Literal
 
 import torch
 
+from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps
+from trakdis.envs import close_env
 from trakdis.envs.specs import TaskName
+from trakdis.evaluation import run_episodes
 from trakdis.modules.baselines import ImageTrunkConfig
+from trakdis.optim import OptimConfig, mean_metrics
+from trakdis.policies import PolicyHandle, save_image_policy
 from trakdis.utils.checkpoint import rng_state, set_rng_state
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, real_steps
-from trakdis.utils.evaluation import run_episodes
-from trakdis.utils.policies import PolicyHandle, close_env, save_image_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
-from trakdis.utils.training import OptimConfig, mean_metrics
 
 
 @dataclass

@@ -19,9 +19,9 @@ from typing import Optional
 
 import torch
 
+from trakdis.data import DataConfig, ensure_dataset, load_trajectories
 from trakdis.envs.specs import TaskName
 from trakdis.utils.config import parse_config
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories
 from trakdis.utils.phases import available_workers
 
 

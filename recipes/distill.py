@@ -35,15 +35,16 @@ from typing import Literal
 
 import torch
 
+from trakdis.data import DataConfig, ensure_dataset, episode_to_trajectory, load_trajectories, make_buffer
+from trakdis.envs import close_env
+from trakdis.evaluation import run_episodes
+from trakdis.optim import OptimConfig, mean_metrics
+from trakdis.policies import PolicyHandle, load_encoder, load_policy, save_policy
+from trakdis.transforms import ProprioceptionOverride, StateNormalizer
 from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, rng_state, set_rng_state
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
-from trakdis.utils.evaluation import run_episodes
 from trakdis.utils.logger import latest_run_dir
-from trakdis.utils.policies import (PolicyHandle, ProprioceptionOverride, StateNormalizer, close_env, load_encoder,
-                                   load_policy, save_policy)
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
-from trakdis.utils.training import OptimConfig, episode_to_trajectory, mean_metrics
 
 
 @dataclass

@@ -29,15 +29,17 @@ from typing import Optional
 
 import torch
 
+from trakdis.data import DataConfig, ensure_dataset, load_trajectories, make_buffer
+from trakdis.envs import close_env
 from trakdis.envs.specs import TaskName
+from trakdis.evaluation import run_episodes
+from trakdis.modules import DTConfig
 from trakdis.modules.baselines import ImageTrunkConfig
+from trakdis.optim import OptimConfig, mean_metrics
+from trakdis.policies import PolicyHandle, save_image_policy
 from trakdis.utils.checkpoint import rng_state, set_rng_state
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
-from trakdis.utils.evaluation import run_episodes
-from trakdis.utils.policies import PolicyHandle, close_env, save_image_policy
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
-from trakdis.utils.training import ModelConfig, OptimConfig, mean_metrics
 
 
 @dataclass
@@ -54,7 +56,7 @@ class DTImageConfig(OptimConfig, RunConfig):
     """image side"""
     trunk: ImageTrunkConfig = field(default_factory=ImageTrunkConfig)
     """CNN trunk"""
-    model: ModelConfig = field(default_factory=ModelConfig)
+    model: DTConfig = field(default_factory=DTConfig)
     """Decision Transformer (the teacher's defaults)"""
     updates: int = 1500
     """updates (the teacher's offline pretraining length)"""
@@ -94,7 +96,7 @@ def main(argv=None) -> dict:
                           image_size=cfg.image_size, log=run.print, progress=cfg.progress)
     data, lengths = load_trajectories(path, keys=("pixels", "action", "reward"))
     trunk = cfg.trunk.make(cfg.image_size).to(cfg.device)
-    dt_cfg = cfg.model.dt_config(cfg.trunk.feature_dim, spec.action_dim, cfg.horizon)
+    dt_cfg = cfg.model.for_task(cfg.trunk.feature_dim, spec.action_dim, cfg.horizon)
     head = make_dt_actor(dt_cfg, observation_key="image_features", device=cfg.device)
     actor = with_image_trunk(head, trunk)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, action_eps=dt_cfg.action_eps)

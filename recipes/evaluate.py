@@ -18,9 +18,10 @@ from typing import Literal, Optional
 
 import pandas as pd
 
+from trakdis.envs import close_env
 from trakdis.envs.specs import TaskName
-from trakdis.utils.evaluation import episode_frames, run_episodes, summarize, write_summary_table
-from trakdis.utils.policies import close_env, load_policy
+from trakdis.evaluation import episode_frames, run_episodes, summarize, write_summary_table
+from trakdis.policies import load_policy
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.video import write_video
 

@@ -36,18 +36,21 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
+from trakdis.data import (DataConfig, default_dataset_path, ensure_dataset, episode_to_trajectory, load_trajectories,
+                          make_buffer, partial_path, valid_mask)
+from trakdis.envs import close_env, start_in_background
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation.background import BackgroundEvaluation
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, make_buffer
+from trakdis.evaluation import (BackgroundEvaluation, EpisodeResults, expert_score_key, expert_score_path,
+                                paired_difference, read_expert_scores, run_episodes, standard_error, summarize,
+                                write_expert_scores)
+from trakdis.modules import DTConfig
+from trakdis.optim import OptimConfig, mean_metrics
+from trakdis.policies import PolicyHandle, load_policy, save_policy
+from trakdis.transforms import StateNormalizer
 from trakdis.utils.checkpoint import atomic_write_bytes, rng_state, set_rng_state
-from trakdis.utils.evaluation import EpisodeResults, paired_difference, run_episodes, standard_error, summarize
-from trakdis.utils.expert_scores import expert_score_key, expert_score_path, read_expert_scores, write_expert_scores
 from trakdis.utils.phases import PhaseTimer, available_workers
-from trakdis.utils.policies import (PolicyHandle, StateNormalizer, close_env, load_policy, save_policy,
-                                    start_in_background)
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
-from trakdis.utils.training import ModelConfig, OptimConfig, episode_to_trajectory, mean_metrics
 
 
 @dataclass
@@ -60,7 +63,7 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """episode length"""
     data: DataConfig = field(default_factory=DataConfig)
     """expert dataset"""
-    model: ModelConfig = field(default_factory=ModelConfig)
+    model: DTConfig = field(default_factory=DTConfig)
     """Decision Transformer"""
     min_lr_fraction: float = 0.1
     """the learning rate decays (cosine) from --lr to this fraction of it by the end of offline
@@ -152,7 +155,7 @@ class OnlineDTConfig(OptimConfig, RunConfig):
 
 PRESETS = {
     "paper": {
-        "model": {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30, "dropout": 0.1},
+        "model": dict(DTConfig.PAPER_SIZES),
         "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000, "batch_size": 256,
         "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
         "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
@@ -240,14 +243,12 @@ def _episodes_done(partial) -> int:
 def main(argv=None) -> dict:
     run = Run.start("online_dt", OnlineDTConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
-    from trakdis.data import partial_path
     from trakdis.envs import task_spec
     from trakdis.modules import make_dt_actor
     from trakdis.objectives import MaskedOnlineDTLoss
-    from trakdis.utils.datasets import default_dataset_path
 
     spec = task_spec(cfg.task, horizon=cfg.horizon)
-    dt_cfg = cfg.model.dt_config(spec.state_dim, spec.action_dim, cfg.horizon)
+    dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon)
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                   action_eps=dt_cfg.action_eps)
@@ -280,7 +281,7 @@ def main(argv=None) -> dict:
                       f"steps/s per worker")
         trajectories, lengths = load_trajectories(dataset, keys=("state", "action", "reward", "normalized_performance"))
         trajectories = trajectories.to_tensordict()
-        valid = torch.arange(trajectories.shape[1]).unsqueeze(0) < lengths.unsqueeze(1)
+        valid = valid_mask(lengths, trajectories.shape[1])
         counters["normalizer"] = StateNormalizer.fit(trajectories["state"][valid],
                                                       min_scale=cfg.state_scale_floor).state_dict()
         rets = trajectories["reward"].sum(dim=(-2, -1))

@@ -30,8 +30,8 @@ from pathlib import Path
 import pandas as pd
 
 from trakdis.envs.specs import TaskName
-from trakdis.utils.evaluation import write_summary_table
-from trakdis.utils.policies import load_policy
+from trakdis.evaluation import write_summary_table
+from trakdis.policies import load_policy
 from trakdis.utils.run import Run, RunConfig
 
 RECIPES = Path(__file__).resolve().parent

@@ -21,11 +21,12 @@ from dataclasses import dataclass, field
 
 import torch
 
+from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps
 from trakdis.envs.specs import TaskName
+from trakdis.modules import NormalizedEncoder
+from trakdis.optim import make_optimizer
+from trakdis.policies import save_encoder
 from trakdis.utils.checkpoint import rng_state, set_rng_state
-from trakdis.utils.datasets import DataConfig, ensure_dataset, load_trajectories, real_steps
-from trakdis.utils.optim import make_optimizer
-from trakdis.utils.policies import NormalizedEncoder, save_encoder
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig
 
@@ -205,7 +206,7 @@ def main(argv=None) -> dict:
 
 def _load_teacher(cfg: TrainEncoderConfig, spec):
     from trakdis.utils.checkpoint import CheckpointError
-    from trakdis.utils.policies import load_policy
+    from trakdis.policies import load_policy
 
     teacher = load_policy(cfg.teacher)
     if teacher.kind != "teacher" or teacher.task != cfg.task or teacher.horizon != cfg.horizon:
@@ -219,8 +220,10 @@ def _student_rollouts(cfg: TrainEncoderConfig, spec, teacher, encoder, *, seed: 
     of the teacher's weights acting on ``encoder``'s estimates, and how they went."""
     from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
     from trakdis.utils.checkpoint import load_checkpoint
-    from trakdis.utils.evaluation import run_episodes
-    from trakdis.utils.policies import PolicyHandle, StateNormalizer, close_env
+    from trakdis.evaluation import run_episodes
+    from trakdis.envs import close_env
+    from trakdis.policies import PolicyHandle
+    from trakdis.transforms import StateNormalizer
 
     student = make_dt_actor(DTConfig(**load_checkpoint(teacher.source)["dt_config"]), observation_key="state_estimate")
     copy_teacher_weights(student, teacher.actor)

@@ -1,7 +1,8 @@
 """trakdis: TorchRL/TensorDict components for transformer-based knowledge distillation in visual RL.
 
-Subpackages: ``envs`` (MuJoCo cloth tasks), ``modules`` (Decision Transformer, encoder),
-``objectives`` (losses), ``transforms``, ``data`` (datasets, replay buffer), ``utils``.
+Subpackages, lowest floor first: ``utils`` (generic helpers), ``envs`` (MuJoCo cloth tasks),
+``modules`` (Decision Transformer, encoder), ``transforms``, ``objectives`` (losses), ``data``
+(episode layout, datasets, replay buffer), ``evaluation``, ``policies`` (saved policies), ``optim``.
 """
 
 import os as _os

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from trakdis.evaluation.background import BackgroundEvaluation
-from trakdis.utils.evaluation import run_episodes
-from trakdis.utils.policies import close_env, load_policy
+from trakdis.envs import close_env
+from trakdis.evaluation import BackgroundEvaluation, run_episodes
+from trakdis.policies import load_policy
 
 
 def test_background_expert_matches_in_process_parallel_evaluation():

@@ -27,16 +27,16 @@ def test_config_presets_and_validation():
     assert (c.embed_dim, c.n_layer, c.n_head, c.context_len, c.max_timestep) == (256, 10, 16, 30, 1024)
     assert DTConfig.paper(18, 8, context_len=5).context_len == 5
     d = DTConfig(18, 8)
-    assert (d.embed_dim, d.n_layer, d.n_head, d.context_len) == (128, 3, 4, 20)
+    assert (d.embed_dim, d.n_layer, d.n_head, d.context_len, d.dropout, d.loc_bound, d.log_std_min) == (64, 2, 2, 20, 0.0, 5.0, -2.5)
     with pytest.raises(ValueError, match="divisible"):
         DTConfig(18, 8, embed_dim=30, n_head=4)
     with pytest.raises(ValueError, match="log_std_min"):
         DTConfig(18, 8, log_std_min=2.0, log_std_max=-5.0)
     with pytest.raises(ValueError, match="activation"):
-        TransformerConfig(activation="swish")
+        TransformerConfig(embed_dim=16, n_layer=1, n_head=2, activation="swish")
     with pytest.raises(ValueError, match="loc_bound"):
         DTConfig(18, 8, loc_bound=-1.0)
-    assert DTConfig(18, 8).action_eps == 1e-6 and abs(DTConfig(18, 8, loc_bound=5.0).action_eps - 9.08e-5) < 1e-7
+    assert DTConfig(18, 8, loc_bound=0.0).action_eps == 1e-6 and abs(DTConfig(18, 8, loc_bound=5.0).action_eps - 9.08e-5) < 1e-7
 
 
 def test_shapes_and_extra_batch_dims():
@@ -131,8 +131,8 @@ def test_actor_head_bounds_and_distribution():
         _, scale_hi = net(td["observation"], td["action"], td["return_to_go"], td["timestep"], td["mask"])
         net.head_log_std.bias.fill_(-100.0)
         _, scale_lo = net(td["observation"], td["action"], td["return_to_go"], td["timestep"], td["mask"])
-    torch.testing.assert_close(scale_hi, torch.full_like(scale_hi, 2.0).exp())
-    torch.testing.assert_close(scale_lo, torch.full_like(scale_lo, -5.0).exp())
+    torch.testing.assert_close(scale_hi, torch.full_like(scale_hi, cfg.log_std_max).exp())
+    torch.testing.assert_close(scale_lo, torch.full_like(scale_lo, cfg.log_std_min).exp())
 
     actor = make_dt_actor(cfg, observation_key="state")
     assert actor.in_keys == ["state", "action", "return_to_go", "timestep", "mask"]

@@ -3,7 +3,8 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
-from trakdis.objectives import EncoderLoss, horizontal_flip, mirror_state, random_flip, random_shift
+from trakdis.objectives import EncoderLoss
+from trakdis.transforms import horizontal_flip, mirror_state, random_flip, random_shift
 
 H = W = 16
 # state = (x_left, y_left, x_right, y_right): two dots, identities by left/right order, x centred.

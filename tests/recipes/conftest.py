@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from trakdis.utils.datasets import DataConfig
+from trakdis.data import DataConfig
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 HORIZON = 6

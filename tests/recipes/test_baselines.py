@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from trakdis.utils.evaluation import run_episodes
-from trakdis.utils.policies import close_env, load_policy
+from trakdis.evaluation import run_episodes
+from trakdis.envs import close_env
+from trakdis.policies import load_policy
 
 from .conftest import DATA, HORIZON, run_recipe
 

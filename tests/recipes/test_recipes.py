@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from trakdis.utils.checkpoint import load_checkpoint
-from trakdis.utils.policies import load_policy
+from trakdis.policies import load_policy
 
 from .conftest import (DATA, HORIZON, RECIPES, _env, distill_args, kill_when, load_recipe, online_dt_args,
                        run_recipe, start_recipe)
@@ -85,7 +85,7 @@ def test_online_dt_damaged_expert_cache_is_an_error_naming_it(workdir, dataset):
     import subprocess
     import sys
 
-    from trakdis.utils.expert_scores import expert_score_key, expert_score_path
+    from trakdis.evaluation import expert_score_key, expert_score_path
     from trakdis.utils.phases import available_workers
 
     key = expert_score_key(task="ClothFold", split="eval", horizon=HORIZON, episodes=2, seed=10_000,
@@ -255,11 +255,31 @@ def test_paper_preset_config():
     assert (cfg.model.embed_dim, cfg.model.n_layer, cfg.model.n_head, cfg.model.context_len) == (256, 1, 16, 30)
     assert cfg.optimizer == "lamb" and cfg.lr == 1e-4 and cfg.weight_decay == 1e-4 and cfg.eval_rtg == -1.0
     assert cfg.data.episodes == 4  # explicit flags win over the preset
-    dt = cfg.model.dt_config(18, 8, horizon=100)
-    assert (dt.embed_dim, dt.n_head, dt.context_len) == (256, 16, 30)
+    dt = cfg.model.for_task(18, 8, horizon=100)
+    assert (dt.embed_dim, dt.n_head, dt.context_len, dt.dropout, dt.attn_dropout) == (256, 16, 30, 0.1, 0.1)
     module = load_recipe("distill")
     cfg = parse_config(module.DistillConfig, ["--preset", "paper"], presets=module.PRESETS)
     assert cfg.rounds == 60 and cfg.optimizer == "lamb"
+
+
+def test_model_section_is_the_dt_config_and_old_run_configs_load():
+    """``--model.*`` is DTConfig itself: the recipes' defaults, and the ``model`` section of a
+    config.json written when it was a separate ModelConfig (7 keys) loads into the same model."""
+    from trakdis.modules import DTConfig
+    from trakdis.utils.config import config_from_dict, config_to_dict
+
+    module = load_recipe("online_dt")
+    d = module.OnlineDTConfig().model.for_task(18, 8, horizon=100)
+    assert (d.embed_dim, d.n_layer, d.n_head, d.context_len, d.dropout, d.attn_dropout, d.loc_bound, d.log_std_min,
+            d.max_timestep) == (64, 2, 2, 20, 0.0, 0.0, 5.0, -2.5, 1024)
+    assert module.OnlineDTConfig().model.for_task(18, 8, horizon=2000).max_timestep == 2001
+    old = config_to_dict(module.OnlineDTConfig())
+    old["model"] = {"embed_dim": 16, "n_layer": 1, "n_head": 1, "context_len": 4, "dropout": 0.1, "loc_bound": 5.0,
+                    "log_std_min": -2.5}
+    dt = config_from_dict(module.OnlineDTConfig, old).model.for_task(18, 8, horizon=6)
+    assert dt == DTConfig(state_dim=18, action_dim=8, embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.1,
+                          attn_dropout=0.1, loc_bound=5.0, log_std_min=-2.5, max_timestep=1024)
+    assert DTConfig(**dt.to_dict()) == dt  # a policy file's dt_config
 
 
 @pytest.mark.parametrize("recipe,args,message", [

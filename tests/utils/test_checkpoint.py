@@ -93,7 +93,7 @@ def _crafted(path, marker, **entries):
 
 
 def test_crafted_file_runs_no_code(tmp_path):
-    from trakdis.utils.policies import load_encoder, load_policy
+    from trakdis.policies import load_encoder, load_policy
 
     marker = tmp_path / "pwned"
     policy = _crafted(tmp_path / "policy.pt", marker, kind="teacher", task="ClothFold", dt_config={}, actor={},

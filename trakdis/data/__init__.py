@@ -1,4 +1,11 @@
-"""Expert datasets on disk and the offline-to-online trajectory replay buffer."""
+"""Expert datasets on disk, the episode layout, and the offline-to-online trajectory replay buffer.
+
+* :mod:`.layout`: the per-step keys of an episode, the valid-step mask, rollout -> dataset layout;
+* :mod:`.dataset`: collection and the on-disk format (memory-mapped, versioned, atomic, resumable);
+* :mod:`.buffer`: ``TrajectoryReplayBuffer`` (left-padded windows, hindsight return-to-go);
+* :mod:`.loading`: the recipes' ``--data.*`` section, finding or collecting a dataset, loading it,
+  making a buffer.
+"""
 
 # The GL backend for pixel collection is chosen by ``trakdis/__init__.py`` (imported before this
 # subpackage) and, if mujoco was loaded earlier, by ``trakdis.envs.rendering.adopt_configured_backend``.
@@ -12,6 +19,8 @@ from .dataset import (
     partial_path,
     read_meta,
 )
+from .layout import ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, episode_to_trajectory, real_steps, valid_mask
+from .loading import DataConfig, default_dataset_path, ensure_dataset, load_trajectories, make_buffer
 
 __all__ = [
     "DATASET_FORMAT",
@@ -23,4 +32,15 @@ __all__ = [
     "load_expert_dataset",
     "partial_path",
     "read_meta",
+    "ACTING_KEYS",
+    "REQUIRED_KEYS",
+    "STEP_KEYS",
+    "episode_to_trajectory",
+    "real_steps",
+    "valid_mask",
+    "DataConfig",
+    "default_dataset_path",
+    "ensure_dataset",
+    "load_trajectories",
+    "make_buffer",
 ]

@@ -54,6 +54,8 @@ from torchrl.data.replay_buffers.samplers import Sampler
 
 from trakdis.transforms.return_to_go import hindsight_return_to_go
 
+from .layout import valid_mask
+
 __all__ = ["TopReturnWriter", "TrajectoryReplayBuffer", "WindowSampler"]
 
 
@@ -326,7 +328,7 @@ class TrajectoryReplayBuffer:
             packed["reward"] = reward = reward.unsqueeze(-1)
         if reward.shape != (N, T, 1):
             raise ValueError(f"TrajectoryReplayBuffer: reward must be [N, T, 1], got {tuple(reward.shape)}")
-        valid = torch.arange(T).unsqueeze(0) < lengths.unsqueeze(1)
+        valid = valid_mask(lengths, T)
         packed = packed.apply(lambda x: torch.where(valid.view(N, T, *([1] * (x.ndim - 2))), x, torch.zeros((), dtype=x.dtype)))
         if T < self.max_len:
             pad = packed[:, :1].apply(lambda x: x.new_zeros(x.shape)).expand(N, self.max_len - T).clone()
@@ -340,7 +342,7 @@ class TrajectoryReplayBuffer:
         kept = index >= 0
         slots = index[kept]
         self.sampler.set_lengths(slots, lengths[kept])
-        valid = torch.arange(self.max_len).unsqueeze(0) < lengths.unsqueeze(1)
+        valid = valid_mask(lengths, self.max_len)
         returns = (packed["reward"].squeeze(-1).double() * valid).sum(-1).float()
         self.returns[slots] = returns[kept]
         self.online[slots] = online
@@ -366,7 +368,7 @@ class TrajectoryReplayBuffer:
         if reward is None:
             raise KeyError(f"TrajectoryReplayBuffer: reward key {self.reward_key!r} not found in the offline data")
         reward = torch.as_tensor(reward).reshape(N, T).double()
-        valid = torch.arange(T).unsqueeze(0) < lengths.unsqueeze(1)
+        valid = valid_mask(lengths, T)
         returns = (reward * valid).sum(-1)
         # select before packing: only the kept trajectories are read (the data may be memory-mapped
         # and much larger than the buffer, e.g. 8000 episodes with pixels)
@@ -429,7 +431,7 @@ class TrajectoryReplayBuffer:
         data = data.apply(lambda x: torch.where(mask.view(B, K, *([1] * (x.ndim - 2))), x, torch.zeros((), dtype=x.dtype)))
         if self.relabel_return_to_go:
             rewards = self.storage._storage.get("reward")[traj]  # [B, max_len, 1]
-            valid = torch.arange(self.max_len).unsqueeze(0) < self.sampler.lengths[traj].unsqueeze(1)
+            valid = valid_mask(self.sampler.lengths[traj], self.max_len)
             rtg = hindsight_return_to_go(rewards, valid, rtg_scale=self.rtg_scale)
             rtg = rtg.gather(1, steps.unsqueeze(-1))
             data.set("return_to_go", torch.where(mask.unsqueeze(-1), rtg, torch.zeros(())))

@@ -39,6 +39,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from trakdis.utils.checkpoint import atomic_write_bytes
+
+from .layout import REQUIRED_KEYS, STEP_KEYS, valid_mask
+
 __all__ = [
     "DATASET_FORMAT",
     "DATASET_VERSION",
@@ -51,21 +55,6 @@ __all__ = [
 
 DATASET_FORMAT = "trakdis-dataset"
 DATASET_VERSION = 1
-
-#: per-step keys: (dataset key, key in the collector batch). Next-step values are what the step produced.
-STEP_KEYS = (
-    ("state", "state"),
-    ("pixels", "pixels"),
-    ("action", "action"),
-    ("reward", ("next", "reward")),
-    ("normalized_performance", ("next", "normalized_performance")),
-    ("sim_unstable", ("next", "sim_unstable")),
-    ("done", ("next", "done")),
-    ("terminated", ("next", "terminated")),
-    ("truncated", ("next", "truncated")),
-    ("step_count", "step_count"),
-)
-REQUIRED_KEYS = ("state", "action", "reward", "done", "terminated", "truncated", "step_count")
 
 
 class DatasetError(RuntimeError):
@@ -110,12 +99,8 @@ def partial_path(path: str | os.PathLike) -> Path:
 
 
 def _write_json_atomic(path: Path, obj: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """``obj`` as indented JSON, written atomically (:func:`~trakdis.utils.atomic_write_bytes`)."""
+    atomic_write_bytes(path, json.dumps(obj, indent=1).encode())
 
 
 def _chunk_seeds(seed: int, chunk: int) -> tuple[int, int]:
@@ -165,7 +150,7 @@ def _batch_to_episodes(batch: TensorDictBase, horizon: int, keys: list[str]) -> 
     any_done = done.any(-1)
     first = torch.where(any_done, done.float().argmax(-1), torch.full((W,), horizon - 1))
     lengths = first + 1
-    valid = torch.arange(horizon).unsqueeze(0) < lengths.unsqueeze(1)
+    valid = valid_mask(lengths, horizon)
     out = {}
     for name, src in STEP_KEYS:
         if name not in keys:

@@ -1,4 +1,4 @@
-"""MuJoCo cloth-folding tasks (gymnasium), scripted experts and the TorchRL factory.
+"""MuJoCo cloth-folding tasks (gymnasium), scripted experts, the TorchRL factory and batched envs.
 
 Importing this package sets ``MUJOCO_GL=egl`` if no GL backend is chosen (before MuJoCo is
 imported) and registers the gymnasium ids ``trakdis/<Task>-v0``.
@@ -21,6 +21,7 @@ from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_nois
 from trakdis.envs.model import PICKER_MARKER_RADIUS, RENDER_VERSION  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
 from trakdis.envs.torchrl_env import ClothInfoReader, make_env, with_contract_keys  # noqa: E402
+from trakdis.envs.batched import close_env, make_batched_env, start_in_background  # noqa: E402
 
 for _task, _cls in ENV_CLASSES.items():
     _id = f"trakdis/{_task}-v0"
@@ -47,4 +48,7 @@ __all__ = [
     "make_env",
     "ClothInfoReader",
     "with_contract_keys",
+    "make_batched_env",
+    "close_env",
+    "start_in_background",
 ]

@@ -4,7 +4,7 @@ A recipe that alternates simulation on every core with training on one core leav
 whenever it trains. :class:`BackgroundEvaluation` plays a policy's evaluation episodes in a
 separate process at a lower scheduling priority (``nice``), so that they fill that idle time
 instead of adding to the run's wall time, and hands back the same
-:class:`~trakdis.utils.evaluation.EpisodeResults` numbers an in-process evaluation would give:
+:class:`~trakdis.evaluation.EpisodeResults` numbers an in-process evaluation would give:
 the episodes run in a ``SerialEnv`` of ``num_envs`` environments, which plays the same
 configurations as a ``ParallelEnv`` of ``num_envs`` workers with the same ``seed``.
 
@@ -42,8 +42,9 @@ def _worker(conn, spec: str, kwargs: dict[str, Any]) -> None:
         import torch
 
         torch.set_num_threads(1)
-        from trakdis.utils.evaluation import run_episodes
-        from trakdis.utils.policies import close_env, load_policy
+        from trakdis.envs import close_env
+        from trakdis.evaluation.episodes import run_episodes
+        from trakdis.policies import load_policy
 
         handle = load_policy(spec, task=kwargs["task"], horizon=kwargs["horizon"])
         env = handle.make_env(num_envs=kwargs["num_envs"], split=kwargs["split"], parallel=False)
@@ -105,8 +106,8 @@ class BackgroundEvaluation:
         return self._results is not None or self._conn.poll()
 
     def result(self):
-        """The :class:`~trakdis.utils.evaluation.EpisodeResults` (waits for the worker)."""
-        from trakdis.utils.evaluation import EpisodeResults
+        """The :class:`~trakdis.evaluation.EpisodeResults` (waits for the worker)."""
+        from .episodes import EpisodeResults
 
         if self._results is None:
             try:

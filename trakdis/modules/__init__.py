@@ -1,7 +1,9 @@
-"""Models: causal transformer, Decision Transformer actor, acting wrapper, CNN state encoder."""
+"""Models: causal transformer, Decision Transformer actor, acting wrapper, CNN state encoder, image
+baselines, and the wrappers that act on standardised values (``NormalizedPolicy``, ``NormalizedEncoder``)."""
 from trakdis.modules.acting import DTActingPolicy
 from trakdis.modules.baselines import BCConfig, BCHead, ImageTrunk, ImageTrunkConfig, make_bc_actor, with_image_trunk
 from trakdis.modules.decision_transformer import DTBackbone, DTConfig, StochasticDTActor, find_dt_actor, make_dt_actor
+from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
 from trakdis.modules.encoder import SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 from trakdis.modules.weights import copy_teacher_weights
@@ -18,6 +20,8 @@ __all__ = [
     "DTBackbone",
     "DTConfig",
     "KVCache",
+    "NormalizedEncoder",
+    "NormalizedPolicy",
     "SpatialSoftArgmax",
     "StateEncoder",
     "StochasticDTActor",

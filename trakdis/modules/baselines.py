@@ -80,7 +80,7 @@ class ImageTrunk(nn.Module):
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         x = to_float_chw(pixels)
         if self.training and self.pad > 0:
-            from trakdis.objectives.augment import random_shift  # objectives import modules, not the reverse
+            from trakdis.transforms.augment import random_shift
 
             lead = x.shape[:-3]
             x = random_shift(x.reshape(-1, *x.shape[-3:]), self.pad).reshape(*lead, *x.shape[-3:])

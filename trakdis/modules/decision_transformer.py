@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import ClassVar, Optional
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -29,48 +30,60 @@ TOKENS_PER_STEP = 3  # (return-to-go, state, action)
 
 @dataclass
 class DTConfig:
-    """Decision Transformer sizes; the defaults are a small model that trains on a CPU.
+    """A Decision Transformer's sizes and action head: the one definition of them, also the
+    recipes' ``--model.*`` section (each field's docstring is its ``--help`` text).
 
-    Args:
-        state_dim: observation (reduced state) width.
-        action_dim: action width.
-        embed_dim, n_layer, n_head, dropout, attn_dropout, mlp_ratio, activation: transformer
-            sizes (see :class:`~trakdis.modules.TransformerConfig`).
-        context_len: K, the number of steps in a training window / acting context.
-        max_timestep: size of the timestep embedding table (timesteps must be < this).
-        log_std_min, log_std_max: bounds of the actor's log standard deviation (Online DT: -5, 2).
-        init_log_std: the log standard deviation at initialisation, for every input.
-        loc_bound: if > 0, the pre-tanh mean is bounded softly to ``(-loc_bound, loc_bound)`` with
-            TorchRL's ``TanhNormal(tanh_loc=True, upscale=loc_bound)`` formula
-            ``loc = loc_bound * tanh(x / loc_bound)`` (0: unbounded, as Online DT). Use it with
-            target actions clamped at ``+-tanh(loc_bound)`` (:attr:`action_eps`): then the policy's
-            own mean actions, written back as training targets (online fine-tuning), map back to
-            the same pre-tanh value. Unbounded, a mean ``loc`` of 9 gives an action that rounds to
-            1.0 in float32, is clamped to ``atanh(1 - 1e-6) = 7.25`` and, with the small std a
-            binary grasp command gets, costs an NLL of ~1e4 (measured: the online phase's loss
-            jumped from -41 to +100 and the teacher fell from 0.31 to -0.04).
+    The defaults are the recipes' small model, which trains on a CPU; :meth:`paper` gives the
+    paper's sizes. ``state_dim``/``action_dim`` depend on the task: a recipe leaves them unset
+    and fills them in with :meth:`for_task` once the environment is known. Unbounded means
+    (``loc_bound=0``) and ``log_std_min=-5`` are Online DT's choices; why the defaults differ:
+    docs/recipes/online_dt.md.
     """
 
-    state_dim: int
-    action_dim: int
-    embed_dim: int = 128
-    n_layer: int = 3
-    n_head: int = 4
+    state_dim: Optional[int] = None
+    """observation (reduced state) width (the recipes fill it in from the task)"""
+    action_dim: Optional[int] = None
+    """action width (the recipes fill it in from the task)"""
+    embed_dim: int = 64
+    """token embedding width"""
+    n_layer: int = 2
+    """transformer blocks"""
+    n_head: int = 2
+    """attention heads"""
     context_len: int = 20
+    """K: steps per training window and acting context"""
     max_timestep: int = 1024
-    dropout: float = 0.1
-    attn_dropout: float = 0.1
+    """size of the timestep embedding table (timesteps must be < this; the recipes make it at least horizon + 1)"""
+    dropout: float = 0.0
+    """dropout (embeddings, residuals and, unless --model.attn-dropout, attention); the DT reference
+    and --preset paper use 0.1, which cost the small offline teacher most of its score (docs/recipes/online_dt.md)"""
+    attn_dropout: Optional[float] = None
+    """dropout on the attention weights (None: the same as --model.dropout)"""
     mlp_ratio: int = 4
+    """hidden width of each block's MLP, as a multiple of embed_dim"""
     activation: str = "gelu"
-    log_std_min: float = -5.0
+    """MLP activation: gelu, gelu_tanh or relu"""
+    log_std_min: float = -2.5
+    """lower bound of the policy's log-std (Online DT: -5; a binary grasp command's std falls to the
+    bound, and a tiny std makes the NLL of the policy's own earlier actions explode online)"""
     log_std_max: float = 2.0
+    """upper bound of the policy's log-std"""
     init_log_std: float = 0.0
-    loc_bound: float = 0.0
+    """the policy's log-std at initialisation, for every input"""
+    loc_bound: float = 5.0
+    """soft bound of the policy's pre-tanh mean, loc_bound * tanh(x / loc_bound) (TorchRL's TanhNormal
+    upscale; 0: unbounded, as Online DT). The losses clamp target actions at +-tanh(loc_bound) to match
+    (action_eps), so the policy's own mean actions, written back as online targets, map back to the same
+    pre-tanh value (docs/recipes/online_dt.md)"""
+
+    PAPER_SIZES: ClassVar[dict] = {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30, "dropout": 0.1}
+    """The TraKDis paper's sizes (:meth:`paper`, the recipes' ``--preset paper``)."""
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "action_dim", "context_len", "max_timestep"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"DTConfig.{name}={getattr(self, name)} must be >= 1")
+            value = getattr(self, name)
+            if value is not None and int(value) < 1:
+                raise ValueError(f"DTConfig.{name}={value} must be >= 1")
         if not self.log_std_min < self.log_std_max:
             raise ValueError(f"log_std_min={self.log_std_min} must be < log_std_max={self.log_std_max}")
         if not self.log_std_min < self.init_log_std < self.log_std_max:
@@ -87,10 +100,17 @@ class DTConfig:
 
     @classmethod
     def paper(cls, state_dim: int, action_dim: int, **overrides) -> "DTConfig":
-        """TraKDis paper sizes: embedding 256, 10 layers, 16 heads, context 30."""
-        kwargs = dict(embed_dim=256, n_layer=10, n_head=16, context_len=30)
+        """TraKDis paper sizes (:attr:`PAPER_SIZES`): embedding 256, 10 layers, 16 heads, context 30, dropout 0.1."""
+        kwargs = dict(cls.PAPER_SIZES)
         kwargs.update(overrides)
         return cls(state_dim=state_dim, action_dim=action_dim, **kwargs)
+
+    def for_task(self, state_dim: int, action_dim: int, horizon: int) -> "DTConfig":
+        """A copy (``dataclasses.replace``) for a task: its observation and action widths, a
+        timestep table of at least ``horizon + 1`` entries, and the attention dropout written out."""
+        return dataclasses.replace(
+            self, state_dim=state_dim, action_dim=action_dim, max_timestep=max(self.max_timestep, horizon + 1),
+            attn_dropout=self.dropout if self.attn_dropout is None else self.attn_dropout)
 
     def transformer_config(self) -> TransformerConfig:
         return TransformerConfig(
@@ -98,7 +118,7 @@ class DTConfig:
             n_layer=self.n_layer,
             n_head=self.n_head,
             dropout=self.dropout,
-            attn_dropout=self.attn_dropout,
+            attn_dropout=self.dropout if self.attn_dropout is None else self.attn_dropout,
             mlp_ratio=self.mlp_ratio,
             activation=self.activation,
         )
@@ -123,6 +143,9 @@ class DTBackbone(nn.Module):
 
     def __init__(self, config: DTConfig):
         super().__init__()
+        if config.state_dim is None or config.action_dim is None:
+            raise ValueError(f"DTConfig.state_dim={config.state_dim} and action_dim={config.action_dim} must be set to build "
+                             "a model (DTConfig.for_task)")
         self.config = config
         d = config.embed_dim
         self.embed_return = nn.Linear(1, d)

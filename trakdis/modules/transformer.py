@@ -43,7 +43,8 @@ _ACTIVATIONS = {"gelu": nn.GELU, "relu": nn.ReLU, "gelu_tanh": lambda: nn.GELU(a
 
 @dataclass
 class TransformerConfig:
-    """Size of a :class:`CausalTransformer`.
+    """Size of a :class:`CausalTransformer`, as :meth:`~trakdis.modules.DTConfig.transformer_config`
+    builds it (the sizes have no defaults here: :class:`~trakdis.modules.DTConfig` is where they are chosen).
 
     Args:
         embed_dim: token width; must be divisible by ``n_head``.
@@ -56,11 +57,11 @@ class TransformerConfig:
         bias: whether linear layers and LayerNorms have biases.
     """
 
-    embed_dim: int = 128
-    n_layer: int = 3
-    n_head: int = 4
-    dropout: float = 0.1
-    attn_dropout: float = 0.1
+    embed_dim: int
+    n_layer: int
+    n_head: int
+    dropout: float = 0.0
+    attn_dropout: float = 0.0
     mlp_ratio: int = 4
     activation: str = "gelu"
     bias: bool = True

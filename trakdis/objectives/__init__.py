@@ -1,5 +1,4 @@
-"""Losses (TorchRL ``LossModule``s) and encoder image augmentation."""
-from trakdis.objectives.augment import horizontal_flip, mirror_state, random_flip, random_shift
+"""Losses (TorchRL ``LossModule``s); the encoder's image augmentation is in :mod:`trakdis.transforms.augment`."""
 from trakdis.objectives.bc_loss import BehaviourCloningLoss
 from trakdis.objectives.distillation import DistillationLoss
 from trakdis.objectives.dt_loss import MaskedOnlineDTLoss, masked_mean
@@ -10,9 +9,5 @@ __all__ = [
     "DistillationLoss",
     "EncoderLoss",
     "MaskedOnlineDTLoss",
-    "horizontal_flip",
     "masked_mean",
-    "mirror_state",
-    "random_flip",
-    "random_shift",
 ]

@@ -11,7 +11,7 @@ from torch import nn
 from torchrl.objectives import LossModule
 
 from trakdis.modules.encoder import to_float_chw
-from trakdis.objectives.augment import random_flip, random_shift
+from trakdis.transforms.augment import random_flip, random_shift
 
 __all__ = ["EncoderLoss"]
 

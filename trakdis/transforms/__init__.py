@@ -1,15 +1,25 @@
-"""TorchRL transforms for TraKDis: image resizing, frozen-encoder state estimation, return-to-go, noise."""
+"""TorchRL transforms for TraKDis: image resizing, frozen-encoder state estimation, return-to-go, noise;
+state standardisation and the proprioception override (TensorDict callables); image augmentation
+with consistent label transforms (``random_shift``, ``random_flip``, ``horizontal_flip``, ``mirror_state``)."""
 
+from .augment import horizontal_flip, mirror_state, random_flip, random_shift
 from .encoder import EncoderTransform
 from .image import ImageResize, resize_images
 from .noise import StateNoise
+from .normalization import ProprioceptionOverride, StateNormalizer
 from .return_to_go import ReturnToGo, hindsight_return_to_go
 
 __all__ = [
     "EncoderTransform",
     "ImageResize",
+    "ProprioceptionOverride",
     "ReturnToGo",
     "StateNoise",
+    "StateNormalizer",
     "hindsight_return_to_go",
+    "horizontal_flip",
+    "mirror_state",
+    "random_flip",
+    "random_shift",
     "resize_images",
 ]

@@ -1,5 +1,7 @@
-"""Recipe support: dataclass CLI configs, run directories, CSV logs, OpenCV plots, atomic
-checkpoints, videos and progress bars."""
+"""Generic helpers that know nothing of trakdis's domain (no import from trakdis outside
+``trakdis.utils``): dataclass CLI configs (tyro) and ``config.json``, run directories and the
+``Run`` skeleton, wide CSV logs, OpenCV plots, atomic writes and checkpoints, RNG state, phase
+timers, videos and progress bars."""
 from .checkpoint import (
     CheckpointError,
     atomic_write_bytes,
@@ -18,7 +20,6 @@ from .config import (
     parse_config,
     save_config,
 )
-from .evaluation import EpisodeResults, run_episodes, summarize, write_summary_table
 from .logger import WideCSVLogger, latest_run_dir, make_run_dir
 from .plot import plot_csv, plot_curves
 from .progress import progress
@@ -49,10 +50,6 @@ __all__ = [
     "Run",
     "RunConfig",
     "seed_everything",
-    "EpisodeResults",
-    "run_episodes",
-    "summarize",
-    "write_summary_table",
     "VideoWriter",
     "side_by_side",
     "write_video",

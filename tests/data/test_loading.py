@@ -1,11 +1,10 @@
-"""Recipe dataset glue: default dataset names and the scripted-expert version check."""
+"""Finding and checking the recipes' datasets: default dataset names and the scripted-expert version check."""
 import json
 
 import pytest
 
-from trakdis.data import DatasetError
+from trakdis.data import DataConfig, DatasetError, default_dataset_path, ensure_dataset
 from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
-from trakdis.utils.datasets import DataConfig, default_dataset_path, ensure_dataset
 
 
 def _fake_dataset(path, expert_version, task="ClothFold", horizon=100, render_version=RENDER_VERSION):
@@ -76,15 +75,3 @@ def test_default_pixel_dataset_of_an_older_rendering_is_refused(tmp_path, found)
     _fake_dataset(path, EXPERT_VERSION, render_version=found)
     with pytest.raises(DatasetError, match="rendering version"):
         ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True)
-
-
-def test_real_steps_drops_padding_and_keeps_episode_order():
-    import torch
-    from tensordict import TensorDict
-
-    from trakdis.utils.datasets import real_steps
-
-    steps = TensorDict({"x": torch.arange(12.0).reshape(3, 4)}, batch_size=[3, 4])
-    lengths = torch.tensor([4, 2, 3])
-    assert real_steps(steps, lengths)["x"].tolist() == [0, 1, 2, 3, 4, 5, 8, 9, 10]
-    assert real_steps(steps, lengths, torch.tensor([2, 1]))["x"].tolist() == [4, 5, 8, 9, 10]

@@ -1,4 +1,5 @@
-"""Image augmentations for the state encoder, with consistent label transforms.
+"""Image augmentations (random shift, horizontal flip) with consistent label transforms: the state
+encoder's training augmentation (:class:`~trakdis.objectives.EncoderLoss`) and the image trunk's random shift.
 
 All functions take float CHW images ``[N, C, H, W]`` (see :func:`trakdis.modules.to_float_chw`).
 """

@@ -21,11 +21,11 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from .checkpoint import atomic_write_bytes
-from .progress import progress
+from trakdis.utils.checkpoint import atomic_write_bytes
+from trakdis.utils.progress import progress
 
-__all__ = ["EpisodeResults", "paired_difference", "run_episodes", "split_episodes", "standard_error", "summarize",
-           "write_summary_table"]
+__all__ = ["EpisodeResults", "episode_frames", "markdown_table", "paired_difference", "run_episodes", "split_episodes",
+           "standard_error", "summarize", "write_summary_table"]
 
 
 @dataclass
@@ -208,7 +208,7 @@ def episode_frames(episode: TensorDictBase, *, large_key: str = "pixels", small_
                    label: str = "") -> list[np.ndarray]:
     """Side-by-side frames (large render | agent view upscaled) of one episode ``[T]`` TensorDict,
     captioned with the step and the normalized performance after it, plus the final frame."""
-    from .video import side_by_side
+    from trakdis.utils.video import side_by_side
 
     for key in (large_key, small_key):
         if key not in episode.keys():

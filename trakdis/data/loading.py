@@ -1,7 +1,7 @@
 """Expert datasets for the recipes: find or collect them, load them, fill a replay buffer.
 
-Thin glue over :mod:`trakdis.data` so that every recipe names datasets the same way
-(``datasets/<task>_<episodes>ep_h<horizon>_noise<sigma>[_px<size>]``) and collects a missing one
+Thin glue over the dataset format and the replay buffer so that every recipe names datasets the
+same way (``datasets/<task>_<episodes>ep_h<horizon>_noise<sigma>[_px<size>]``) and collects a missing one
 automatically (an interrupted collection resumes when the same command runs again).
 """
 from __future__ import annotations
@@ -13,11 +13,12 @@ from typing import Callable, Optional, Sequence
 import torch
 from tensordict import TensorDict
 
-from trakdis.data import DatasetError
+from trakdis.utils.phases import available_workers
 
-from .phases import available_workers
+from .buffer import TrajectoryReplayBuffer
+from .dataset import DatasetError, collect_expert_dataset, load_expert_dataset, partial_path, read_meta
 
-__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "load_trajectories", "make_buffer", "real_steps"]
+__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "load_trajectories", "make_buffer"]
 
 
 @dataclass
@@ -52,8 +53,6 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 
     An existing dataset must hold episodes of ``task`` with ``horizon`` steps (its ``meta.json``):
     anything else is a :class:`~trakdis.data.DatasetError` naming the path and both values."""
-    from trakdis.data import collect_expert_dataset, partial_path, read_meta
-
     from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
 
     if horizon < 1:
@@ -96,8 +95,6 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tuple[TensorDict, torch.Tensor]:
     """``(steps [episodes, horizon], lengths [episodes])`` of a dataset (memory-mapped), optionally
     restricted to ``keys``; raises a clear error naming missing keys."""
-    from trakdis.data import load_expert_dataset
-
     steps, meta = load_expert_dataset(path)
     if keys is not None:
         missing = [k for k in keys if k not in steps.keys()]
@@ -108,21 +105,11 @@ def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tu
     return steps, meta["lengths"]
 
 
-def real_steps(steps: TensorDict, lengths: torch.Tensor, episodes: torch.Tensor | None = None) -> TensorDict:
-    """The real steps of ``episodes`` (all by default) of ``steps [episodes, horizon]``, in episode
-    order, as one flat TensorDict (steps past an episode's length are padding)."""
-    episodes = torch.arange(steps.shape[0]) if episodes is None else episodes.sort().values
-    valid = torch.arange(steps.shape[1]).unsqueeze(0) < lengths[episodes].unsqueeze(1)
-    return steps[episodes].to_tensordict()[valid]
-
-
 def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float, keys: Sequence[str],
                 seed: int | None = None, transform=None, early_windows: bool = False, replacement: str = "oldest",
                 relabel_return_to_go: bool = True):
     """A :class:`~trakdis.data.TrajectoryReplayBuffer` storing ``keys`` (+ ``"action"``, reward);
-    ``transform`` is applied to sampled windows (e.g. a :class:`~trakdis.utils.policies.StateNormalizer`)."""
-    from trakdis.data import TrajectoryReplayBuffer
-
+    ``transform`` is applied to sampled windows (e.g. a :class:`~trakdis.transforms.StateNormalizer`)."""
     keys = list(dict.fromkeys([*keys, "action"]))
     return TrajectoryReplayBuffer(capacity, context_len, max_len, keys=keys, rtg_scale=rtg_scale, seed=seed,
                                   transform=transform, early_windows=early_windows, replacement=replacement,

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from trakdis.utils.expert_scores import (ExpertScoreError, expert_score_key, expert_score_path, read_expert_scores,
+from trakdis.evaluation import (ExpertScoreError, expert_score_key, expert_score_path, read_expert_scores,
                                          write_expert_scores)
 
 

@@ -30,8 +30,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from trakdis.data import DatasetError
-
-from .checkpoint import atomic_write_bytes
+from trakdis.utils.checkpoint import atomic_write_bytes
 
 __all__ = ["ExpertScoreError", "expert_score_key", "expert_score_path", "read_expert_scores", "write_expert_scores"]
 

@@ -7,7 +7,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase, SerialEnv, StepCounter, TransformedEnv
 
-from trakdis.utils.evaluation import run_episodes, split_episodes, summarize, write_summary_table
+from trakdis.evaluation import run_episodes, split_episodes, summarize, write_summary_table
 
 
 class Walk(EnvBase):
@@ -98,7 +98,7 @@ def test_summary_and_tables(tmp_path):
 
 
 def test_close_env_keeps_thread_count():
-    from trakdis.utils.policies import close_env
+    from trakdis.envs import close_env
 
     before = torch.get_num_threads()
     try:
@@ -114,7 +114,7 @@ def test_close_env_keeps_thread_count():
 def test_close_env_never_masks_the_original_error():
     """close_env in a finally on an env that never started (the error came before its first reset)
     used to raise "trying to close a closed environment" over the real error."""
-    from trakdis.utils.policies import close_env
+    from trakdis.envs import close_env
 
     env = SerialEnv(2, make)
     assert env.is_closed  # TorchRL starts it at the first reset
@@ -150,7 +150,7 @@ def test_close_env_never_masks_the_original_error():
 
 
 def test_standard_error_and_paired_difference():
-    from trakdis.utils.evaluation import paired_difference, standard_error
+    from trakdis.evaluation import paired_difference, standard_error
 
     assert standard_error([1.0, 2.0, 3.0, 4.0]) == pytest.approx(np.std([1, 2, 3, 4], ddof=1) / 2)
     assert standard_error([0.5]) == 0.0
@@ -176,7 +176,8 @@ def test_results_report_their_rate():
 def test_parallel_workers_play_the_same_episodes_as_serial_envs():
     """ParallelEnv (worker processes) and SerialEnv of the same size, same seed: the same episodes,
     value for value; another seed plays other configurations."""
-    from trakdis.utils.policies import close_env, load_policy
+    from trakdis.envs import close_env
+    from trakdis.policies import load_policy
 
     expert = load_policy("expert", task="ClothFold", horizon=4)
     results = {}

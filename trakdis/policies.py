@@ -1,150 +1,50 @@
-"""Policy files and acting environments shared by the recipes.
+"""Saved policies: policy files, encoder files, and a loaded policy's acting environment.
 
 A *policy file* (``policy.pt``, written by ``online_dt.py`` and ``distill.py``) is a checkpoint
 dict holding everything needed to act without the recipe's config:
 
 ``kind`` (``"teacher"`` / ``"student"``), ``task``, ``horizon``, ``dt_config`` (a
 :class:`~trakdis.modules.DTConfig` dict), ``observation_key``, ``actor`` (state dict),
-``target_return`` and ``rtg_scale`` (acting return-to-go), ``env_kwargs`` and, for a student,
-``encoder`` (an encoder file's dict, see :func:`save_encoder`).
+``target_return`` and ``rtg_scale`` (acting return-to-go), ``env_kwargs``, ``normalizer`` (a
+:class:`~trakdis.transforms.StateNormalizer` state, or None) and, for a student, ``encoder`` (an
+encoder file's dict, see :func:`save_encoder`). The image baselines' files (kinds ``bc_image`` /
+``dt_image``, :func:`save_image_policy`) hold their CNN trunk and head instead.
 
 :func:`load_policy` turns a policy file, or the string ``"expert"`` (the scripted expert), into
-a :class:`PolicyHandle` that builds its acting environment (batched over ``num_envs``, with the
-return-to-go countdown, the frozen encoder and optional state noise) and its acting module.
+a :class:`PolicyHandle` that builds its acting environment (:func:`make_acting_env`: batched over
+``num_envs``, with the return-to-go countdown, the frozen encoder and optional state noise) and
+its acting module.
 """
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import torch
-from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from trakdis.envs.batched import make_batched_env
+from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
+from trakdis.transforms.normalization import ProprioceptionOverride, StateNormalizer
+from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 __all__ = [
-    "close_env",
-    "start_in_background",
-    "make_batched_env",
     "make_acting_env",
     "PolicyHandle",
     "load_policy",
     "save_policy",
     "save_encoder",
     "load_encoder",
-    "NormalizedEncoder",
-    "StateNormalizer",
-    "NormalizedPolicy",
-    "ProprioceptionOverride",
+    "encoder_from_dict",
     "IMAGE_POLICY_KINDS",
     "save_image_policy",
 ]
 
 
-# --------------------------------------------------------------------------- environments
-def close_env(env) -> None:
-    """``env.close()`` without TorchRL's side effect on the thread count, safe in a ``finally``.
-
-    TorchRL 0.14's ``BatchedEnvBase.close`` (``SerialEnv``/``ParallelEnv``) raises torch's intra-op
-    thread count to ``min(initial, current + num_workers)``, even for a ``SerialEnv`` that never
-    lowered it. Measured here: with 1 thread requested and a 2-env ``SerialEnv`` closed, the next
-    DT updates ran ~10x slower on a loaded 2-core machine (OpenMP threads spinning in libgomp).
-
-    Closing never hides the error that led to it: an env that is already closed, or never started
-    (TorchRL starts batched envs at their first reset, and ``close()`` on one raises "trying to
-    close a closed environment"), is skipped; and when ``close()`` fails while another exception is
-    propagating (``close_env`` in a ``finally``), its failure is only warned about, so the original
-    exception, Ctrl-C included, is the one raised.
-    """
-    import sys
-    import warnings
-
-    import torch
-
-    if getattr(env, "is_closed", False):
-        return
-    in_flight = sys.exc_info()[1]
-    threads = torch.get_num_threads()
-    try:
-        env.close()
-    except Exception as err:
-        if in_flight is None:
-            raise
-        warnings.warn(f"close_env: closing {type(env).__name__} failed ({type(err).__name__}: {err}) while "
-                      f"{type(in_flight).__name__} was being raised; raising that one", RuntimeWarning, stacklevel=2)
-    finally:
-        torch.set_num_threads(threads)
-
-
-class start_in_background:
-    """Start the worker processes of ``ParallelEnv`` s (bare or inside a ``TransformedEnv``) in a
-    thread, while this process goes on with something else, e.g. training on its own core.
-
-    TorchRL starts a ``ParallelEnv``'s workers lazily, at its first reset, and then waits for each
-    to import torch, TorchRL and MuJoCo (spawned processes: about 6 CPU seconds a worker here). This
-    calls TorchRL's own ``start()`` earlier, from a thread (TorchRL has no non-blocking start); the
-    envs are otherwise untouched. ``join()`` (also on exit of a ``with`` block) waits for it and
-    re-raises a failure; call it before using or closing the envs."""
-
-    def __init__(self, *envs):
-        import threading
-
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._start, args=(envs,), name="trakdis-env-start", daemon=True)
-        self._thread.start()
-
-    def _start(self, envs) -> None:
-        from torchrl.envs import ParallelEnv
-
-        try:
-            for env in envs:
-                base = getattr(env, "base_env", env)
-                if isinstance(base, ParallelEnv) and base.is_closed:
-                    base.start()
-        except BaseException as err:  # re-raised by join(), in the caller's thread
-            self.error = err
-
-    def join(self, raise_error: bool = True) -> None:
-        self._thread.join()
-        if self.error is not None and raise_error:
-            err, self.error = self.error, None
-            raise err
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.join()
-
-
-def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, seed: int | None = None,
-                     split: str = "train", from_pixels: bool = False, image_size: int = 32,
-                     env_kwargs: Mapping[str, Any] | None = None):
-    """``SerialEnv``/``ParallelEnv`` of ``num_envs`` :func:`trakdis.envs.make_env` instances (batch ``[num_envs]``)."""
-    from torchrl.envs import ParallelEnv, SerialEnv
-
-    from trakdis.envs import make_env
-
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-    factory = functools.partial(make_env, task, from_pixels=from_pixels, image_size=image_size, split=split,
-                                **dict(env_kwargs or {}))
-    cls = ParallelEnv if parallel and num_envs > 1 else SerialEnv
-    # spawn: forking a process that already holds a GL context hangs its children. use_buffers=False:
-    # with shared buffers TorchRL 0.14's main process spins while the workers step, which on 2 cores
-    # takes a core from them (benchmarks/env_speed.py: 1.16x vs 1.54x for 2 workers on ClothFold).
-    kwargs = {"mp_start_method": "spawn", "use_buffers": False} if cls is ParallelEnv else {}
-    env = cls(num_envs, factory, **kwargs)
-    if seed is not None:
-        env.set_seed(seed)
-    return env
-
-
+# --------------------------------------------------------------------------- acting environments
 def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale: float = 1.0,
                     encoder: nn.Module | None = None, state_noise: float = 0.0, noise_seed: int | None = None,
                     video_size: int | None = None, encoder_key: str = "state_estimate", **batched_kwargs):
@@ -186,105 +86,7 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
     return TransformedEnv(env, Compose(*transforms)) if transforms else env
 
 
-# --------------------------------------------------------------------------- state normalisation
-class StateNormalizer:
-    """``x -> (x - loc) / scale`` on the given keys of a TensorDict (returns it; values replaced, not
-    modified in place). Decision Transformers are trained on standardised states (as in DT/ODT):
-    the raw cloth coordinates differ by centimetres, far below the scale of the other token
-    embeddings. Used as the replay buffer's sampling transform; :class:`NormalizedPolicy` applies the
-    same map when acting, so the environment and the stored data stay in raw units."""
-
-    def __init__(self, loc, scale, keys=("state",)):
-        self.loc = torch.as_tensor(loc, dtype=torch.float32)
-        self.scale = torch.as_tensor(scale, dtype=torch.float32)
-        if self.loc.shape != self.scale.shape or self.loc.ndim != 1:
-            raise ValueError(f"StateNormalizer: loc {tuple(self.loc.shape)} and scale {tuple(self.scale.shape)} must be equal 1-d shapes")
-        if (self.scale <= 0).any():
-            raise ValueError("StateNormalizer: scale must be > 0")
-        self.keys = tuple(keys)
-
-    @classmethod
-    def fit(cls, states: torch.Tensor, keys=("state",), min_scale: float = 1e-3) -> "StateNormalizer":
-        """Mean and std over all leading dims of ``states`` ``[..., D]`` (std clamped to ``min_scale``)."""
-        flat = states.reshape(-1, states.shape[-1]).double()
-        return cls(flat.mean(0).float(), flat.std(0).clamp_min(min_scale).float(), keys)
-
-    def normalize(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.loc.to(x.device)) / self.scale.to(x.device)
-
-    def __call__(self, td):
-        for key in self.keys:
-            if key in td.keys():
-                td.set(key, self.normalize(td.get(key)))
-        return td
-
-    def state_dict(self) -> dict:
-        return {"loc": self.loc.clone(), "scale": self.scale.clone(), "keys": list(self.keys)}
-
-    @classmethod
-    def from_state_dict(cls, state: Mapping[str, Any]) -> "StateNormalizer":
-        return cls(state["loc"], state["scale"], state.get("keys", ("state",)))
-
-
-class ProprioceptionOverride:
-    """Replace ``dims`` of ``dst`` (the encoder's estimate) by the same dims of ``src`` (the true
-    state): the picker positions are known to the robot without vision. Callable on TensorDicts
-    (windows or env steps); returns the TensorDict."""
-
-    def __init__(self, dims, src: str = "state", dst: str = "state_estimate"):
-        self.dims = torch.as_tensor(list(dims), dtype=torch.long)
-        self.src, self.dst = src, dst
-
-    def __call__(self, td):
-        if self.dims.numel() and self.dst in td.keys():
-            if self.src not in td.keys():
-                raise KeyError(f"ProprioceptionOverride: {self.src!r} is needed to fill dims {self.dims.tolist()} of {self.dst!r}")
-            est = td.get(self.dst).clone()
-            est[..., self.dims] = td.get(self.src)[..., self.dims].to(est.dtype)
-            td.set(self.dst, est)
-        return td
-
-
-class NormalizedPolicy(TensorDictModuleBase):
-    """Run ``policy`` on the normalised ``key`` (after the optional ``pre`` map, e.g. a
-    :class:`ProprioceptionOverride`) and put the raw value back afterwards."""
-
-    def __init__(self, policy: nn.Module, normalizer: StateNormalizer | None, key: str, pre=None):
-        super().__init__()
-        self.policy = policy
-        self.normalizer = normalizer
-        self.key = key
-        self.pre = pre
-        self.in_keys = list(getattr(policy, "in_keys", [key]))
-        self.out_keys = list(getattr(policy, "out_keys", ["action"]))
-
-    def forward(self, tensordict):
-        raw = tensordict.get(self.key)
-        if self.pre is not None:
-            self.pre(tensordict)
-        value = tensordict.get(self.key)
-        tensordict.set(self.key, value if self.normalizer is None else self.normalizer.normalize(value))
-        try:
-            tensordict = self.policy(tensordict)
-        finally:
-            tensordict.set(self.key, raw)
-        return tensordict
-
-
 # --------------------------------------------------------------------------- encoder files
-class NormalizedEncoder(nn.Module):
-    """``encoder(pixels) * std + mean``: the CNN regresses standardised states, this returns raw ones."""
-
-    def __init__(self, encoder: nn.Module, mean: torch.Tensor, std: torch.Tensor):
-        super().__init__()
-        self.encoder = encoder
-        self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32).clone())
-        self.register_buffer("std", torch.as_tensor(std, dtype=torch.float32).clone())
-
-    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
-        return self.encoder(pixels) * self.std + self.mean
-
-
 # Keys an encoder file written before the keypoint encoder lacks: they mean the earlier layout.
 _EARLIER_ENCODER_LAYOUT = {"head": "flatten", "stem_stride": 2, "coord_channels": False}
 

@@ -1,0 +1,51 @@
+"""Saved policies: policy and encoder files, the expert, and a policy's acting env."""
+import pytest
+import torch
+
+from trakdis.modules import DTConfig, NormalizedEncoder, StateEncoder, make_dt_actor
+from trakdis.policies import load_encoder, load_policy, make_acting_env, save_encoder, save_policy
+from trakdis.utils.checkpoint import CheckpointError, save_checkpoint
+
+
+def tiny_actor(key="state"):
+    cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(5, 2, horizon=10)
+    return cfg, make_dt_actor(cfg, observation_key=key)
+
+
+def test_policy_and_encoder_files(tmp_path):
+    cfg, actor = tiny_actor()
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFoldDiagonalPinned", horizon=10, dt_config=cfg,
+                actor=actor, observation_key="state", target_return=-1.0, rtg_scale=1.0)
+    h = load_policy(tmp_path)  # a run directory works too
+    assert h.kind == "teacher" and h.task == "ClothFoldDiagonalPinned" and h.horizon == 10 and h.encoder is None
+    for a, b in zip(actor.parameters(), h.actor.parameters()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="ClothFold"):
+        load_policy(tmp_path / "policy.pt", task="ClothFold")
+    assert load_policy("expert", task="ClothFold").kind == "expert"
+    with pytest.raises(ValueError, match="--task"):
+        load_policy("expert")
+    enc = NormalizedEncoder(StateEncoder(5, channels=(4, 4, 4, 4), hidden_dim=8), torch.arange(5.0), torch.full((5,), 2.0))
+    save_encoder(tmp_path / "encoder.pt", enc, task="ClothFold")
+    enc2, data = load_encoder(tmp_path / "encoder.pt")
+    px = torch.randint(0, 255, (2, 32, 32, 3), dtype=torch.uint8)
+    assert torch.allclose(enc.eval()(px), enc2(px))
+    with pytest.raises(CheckpointError, match="teacher"):
+        load_encoder(tmp_path / "policy.pt")
+    save_checkpoint(tmp_path / "bad.pt", {"kind": "encoder", "task": "ClothFold", "dt_config": {}, "actor": {},
+                                          "observation_key": "state"})
+    with pytest.raises(CheckpointError, match="not a policy"):
+        load_policy(tmp_path / "bad.pt")
+
+
+def test_bad_state_noise_and_horizon_are_refused(tmp_path):
+    for sigma in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="state_noise must be a finite std >= 0"):
+            make_acting_env("ClothFold", state_noise=sigma)
+    cfg, actor = tiny_actor()
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFold", horizon=10, dt_config=cfg,
+                actor=actor, observation_key="state", target_return=-1.0, rtg_scale=1.0)
+    for spec in (tmp_path, "expert"):
+        with pytest.raises(ValueError, match="horizon must be >= 1"):
+            load_policy(spec, task="ClothFold", horizon=0)
+    assert load_policy(tmp_path).horizon == 10 and load_policy(tmp_path, horizon=3).horizon == 3

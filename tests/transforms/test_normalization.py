@@ -1,0 +1,36 @@
+"""State standardisation (StateNormalizer, with NormalizedPolicy acting on it) and the proprioception override."""
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from trakdis.modules import NormalizedPolicy
+from trakdis.transforms import ProprioceptionOverride, StateNormalizer
+
+
+def test_state_normalizer_and_normalized_policy():
+    states = torch.randn(50, 3) * torch.tensor([1.0, 10.0, 0.0]) + torch.tensor([5.0, -2.0, 1.0])
+    norm = StateNormalizer.fit(states, keys=("state", "state_estimate"))
+    out = norm(TensorDict({"state": states, "state_estimate": states.clone(), "other": states.clone()}, [50]))
+    assert torch.allclose(out["state"][:, :2].mean(0), torch.zeros(2), atol=1e-5)
+    assert torch.allclose(out["state"][:, :2].std(0), torch.ones(2), atol=1e-4)
+    assert torch.equal(out["state"], out["state_estimate"]) and torch.equal(out["other"], states)
+    assert norm.scale[2] == 1e-3  # constant dimension: clamped, no division by zero
+    again = StateNormalizer.from_state_dict(norm.state_dict())
+    assert torch.equal(again.loc, norm.loc) and again.keys == norm.keys
+    seen = {}
+    inner = TensorDictModule(lambda s: seen.setdefault("s", s.clone()).sum(-1, keepdim=True), ["state"], ["action"])
+    td = TensorDict({"state": states[:4].clone()}, [4])
+    NormalizedPolicy(inner, norm, "state")(td)
+    assert torch.allclose(seen["s"], norm.normalize(states[:4]))  # the policy saw normalised states
+    assert torch.equal(td["state"], states[:4]) and "action" in td.keys()  # the raw state is back
+    with pytest.raises(ValueError):
+        StateNormalizer(torch.zeros(2), torch.zeros(2))
+
+
+def test_proprioception_override():
+    td = TensorDict({"state": torch.arange(6.0).expand(2, 6).clone(), "state_estimate": torch.zeros(2, 6)}, [2])
+    ProprioceptionOverride(range(4, 6))(td)
+    assert td["state_estimate"][0].tolist() == [0, 0, 0, 0, 4, 5]
+    with pytest.raises(KeyError, match="state"):
+        ProprioceptionOverride([1])(TensorDict({"state_estimate": torch.zeros(1, 2)}, [1]))

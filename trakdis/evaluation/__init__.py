@@ -1,0 +1,40 @@
+"""Evaluation: playing episodes of a policy in a batched env and summarising their scores
+(:mod:`.episodes`), the scripted expert's scores cached on disk (:mod:`.expert_scores`), and
+evaluations of a saved policy in a background process at low priority (:mod:`.background`)."""
+from .background import BackgroundEvaluation
+from .episodes import (
+    EpisodeResults,
+    episode_frames,
+    markdown_table,
+    paired_difference,
+    run_episodes,
+    split_episodes,
+    standard_error,
+    summarize,
+    write_summary_table,
+)
+from .expert_scores import (
+    ExpertScoreError,
+    expert_score_key,
+    expert_score_path,
+    read_expert_scores,
+    write_expert_scores,
+)
+
+__all__ = [
+    "BackgroundEvaluation",
+    "EpisodeResults",
+    "episode_frames",
+    "markdown_table",
+    "paired_difference",
+    "run_episodes",
+    "split_episodes",
+    "standard_error",
+    "summarize",
+    "write_summary_table",
+    "ExpertScoreError",
+    "expert_score_key",
+    "expert_score_path",
+    "read_expert_scores",
+    "write_expert_scores",
+]

@@ -1,0 +1,71 @@
+"""State standardisation and the proprioception override: callables on TensorDicts (replay-buffer
+sampling transforms, and the acting maps of :class:`~trakdis.modules.NormalizedPolicy`).
+
+* :class:`StateNormalizer`: ``x -> (x - loc) / scale`` on some keys, fitted on a dataset's states.
+* :class:`ProprioceptionOverride`: the picker dims of an encoder's estimate taken from the true state.
+"""
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import torch
+
+__all__ = ["ProprioceptionOverride", "StateNormalizer"]
+
+
+class StateNormalizer:
+    """``x -> (x - loc) / scale`` on the given keys of a TensorDict (returns it; values replaced, not
+    modified in place). Decision Transformers are trained on standardised states (as in DT/ODT):
+    the raw cloth coordinates differ by centimetres, far below the scale of the other token
+    embeddings. Used as the replay buffer's sampling transform; :class:`NormalizedPolicy` applies the
+    same map when acting, so the environment and the stored data stay in raw units."""
+
+    def __init__(self, loc, scale, keys=("state",)):
+        self.loc = torch.as_tensor(loc, dtype=torch.float32)
+        self.scale = torch.as_tensor(scale, dtype=torch.float32)
+        if self.loc.shape != self.scale.shape or self.loc.ndim != 1:
+            raise ValueError(f"StateNormalizer: loc {tuple(self.loc.shape)} and scale {tuple(self.scale.shape)} must be equal 1-d shapes")
+        if (self.scale <= 0).any():
+            raise ValueError("StateNormalizer: scale must be > 0")
+        self.keys = tuple(keys)
+
+    @classmethod
+    def fit(cls, states: torch.Tensor, keys=("state",), min_scale: float = 1e-3) -> "StateNormalizer":
+        """Mean and std over all leading dims of ``states`` ``[..., D]`` (std clamped to ``min_scale``)."""
+        flat = states.reshape(-1, states.shape[-1]).double()
+        return cls(flat.mean(0).float(), flat.std(0).clamp_min(min_scale).float(), keys)
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.loc.to(x.device)) / self.scale.to(x.device)
+
+    def __call__(self, td):
+        for key in self.keys:
+            if key in td.keys():
+                td.set(key, self.normalize(td.get(key)))
+        return td
+
+    def state_dict(self) -> dict:
+        return {"loc": self.loc.clone(), "scale": self.scale.clone(), "keys": list(self.keys)}
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, Any]) -> "StateNormalizer":
+        return cls(state["loc"], state["scale"], state.get("keys", ("state",)))
+
+
+class ProprioceptionOverride:
+    """Replace ``dims`` of ``dst`` (the encoder's estimate) by the same dims of ``src`` (the true
+    state): the picker positions are known to the robot without vision. Callable on TensorDicts
+    (windows or env steps); returns the TensorDict."""
+
+    def __init__(self, dims, src: str = "state", dst: str = "state_estimate"):
+        self.dims = torch.as_tensor(list(dims), dtype=torch.long)
+        self.src, self.dst = src, dst
+
+    def __call__(self, td):
+        if self.dims.numel() and self.dst in td.keys():
+            if self.src not in td.keys():
+                raise KeyError(f"ProprioceptionOverride: {self.src!r} is needed to fill dims {self.dims.tolist()} of {self.dst!r}")
+            est = td.get(self.dst).clone()
+            est[..., self.dims] = td.get(self.src)[..., self.dims].to(est.dtype)
+            td.set(self.dst, est)
+        return td
