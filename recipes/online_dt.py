@@ -26,8 +26,6 @@ Writes ``runs/online_dt/<name>/``: ``config.json``, ``log.csv``, ``curves.png``,
 """
 from __future__ import annotations
 
-import json
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -36,21 +34,19 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from trakdis.data import (DataConfig, default_dataset_path, ensure_dataset, episode_to_trajectory, load_trajectories,
-                          make_buffer, partial_path, valid_mask)
-from trakdis.envs import close_env, start_in_background
+from trakdis.data import DataConfig, default_dataset_path, ensure_dataset_timed, episode_to_trajectory, load_trajectories, make_buffer, valid_mask
+from trakdis.envs import close_env, start_in_background, task_spec
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import (BackgroundEvaluation, EpisodeResults, expert_score_key, expert_score_path,
-                                paired_difference, read_expert_scores, run_episodes, standard_error, summarize,
-                                write_expert_scores)
-from trakdis.modules import DTConfig
+from trakdis.evaluation import BackgroundEvaluation, EvalProtocol, compare_scores, run_episodes
+from trakdis.modules import DTConfig, make_dt_actor
+from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig, mean_metrics
-from trakdis.policies import PolicyHandle, load_policy, save_policy
-from trakdis.transforms import StateNormalizer
-from trakdis.utils.checkpoint import atomic_write_bytes, rng_state, set_rng_state
+from trakdis.policies import PolicyHandle, save_policy
+from trakdis.training import train_updates
+from trakdis.transforms import StateNoise, StateNormalizer
 from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.progress import progress
-from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
@@ -164,277 +160,136 @@ PRESETS = {
 }
 
 
-def evaluate(run: Run, handle: PolicyHandle, env, cfg: OnlineDTConfig, step: int, tag: str) -> EpisodeResults:
-    actor = handle.actor
-    was_training = actor.training if actor is not None else False
-    # Every evaluation replays the same eval-split configurations (same seed): scores are comparable,
-    # and the online gain is a paired difference.
-    res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.eval_episodes, max_steps=cfg.horizon,
-                       desc=f"eval ({tag})", seed=cfg.seed + 10_000)
-    if actor is not None:
-        actor.train(was_training)
-    log_scores(run, step, "eval" if handle.kind != "expert" else "eval_expert", tag, res.final_performance,
-               res.returns, detail=res.rate())
-    return res
-
-
-def log_scores(run: Run, step: int, prefix: str, tag: str, scores, returns, detail: str = "") -> None:
-    s = summarize(scores)
-    run.log(step, {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"],
-                   f"{prefix}/return": float(np.mean(returns))})
-    run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} (std; standard error "
-              f"{standard_error(scores):.3f}; return {np.mean(returns):.3f}, {s['n']} eval episodes)"
-              + (f"; {detail}" if detail else ""))
-
-
-def background_evaluation(spec, cfg: OnlineDTConfig, phases: PhaseTimer, what: str) -> BackgroundEvaluation:
-    """``evaluate`` of the policy file ``spec`` in a background process (the same episodes)."""
-    job = BackgroundEvaluation(spec, task=cfg.task, horizon=cfg.horizon, num_episodes=cfg.eval_episodes,
-                               num_envs=cfg.num_envs, env_seed=cfg.seed + 10_000, policy_seed=cfg.seed)
-    phases.exclude(job.pid)
-    return job
-
-
-def finish_background(run: Run, job: BackgroundEvaluation, phases: PhaseTimer, cfg: OnlineDTConfig, what: str,
-                      step: int, prefix: str, tag: str) -> EpisodeResults:
-    """Wait for a background evaluation, book its time and log its scores at ``step``."""
-    with phases.phase(f"waiting for the background evaluation ({what})"):
-        res = job.result()  # its CPU seconds join RUSAGE_CHILDREN here: booked to its own row at once
-        phases.add_background(f"evaluation ({what}, background)", job.pid, episodes=cfg.eval_episodes,
-                              wall=job.wall_seconds, cpu=job.cpu_seconds, workers=1)
-    log_scores(run, step, prefix, tag, res.final_performance, res.returns,
-               detail=f"{cfg.eval_episodes} episodes in {job.wall_seconds:.0f} s in a background process")
-    return res
-
-
-def expert_baseline(run: Run, env, cfg: OnlineDTConfig, phases: PhaseTimer) -> np.ndarray | BackgroundEvaluation:
-    """The scripted expert's scores on the evaluation episodes: from the cache next to the datasets,
-    or measured (in a background process with --background-eval, whose results the caller caches;
-    else on ``env``, the teacher's evaluation env: the expert ignores its return-to-go) and cached."""
-    key = expert_score_key(task=cfg.task, split="eval", horizon=cfg.horizon, episodes=cfg.eval_episodes,
-                           seed=cfg.seed + 10_000, num_envs=cfg.num_envs)
-    path = expert_score_path(cfg.data.root, key)
-    cached = read_expert_scores(path, key) if cfg.expert_cache else None
-    if cached is not None:
-        scores, returns = cached
-        log_scores(run, 0, "eval_expert", "scripted expert", scores, returns,
-                   detail=f"measured once, cached in {path}")
-        return scores
-    if cfg.background_eval:
-        job = background_evaluation("expert", cfg, phases, "scripted expert")
-        job.cache_path, job.cache_key = path, key
-        return job
-    expert = load_policy("expert", task=cfg.task, horizon=cfg.horizon)
-    with phases.phase("expert evaluation", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-        res = evaluate(run, expert, env, cfg, 0, "scripted expert")
-    write_expert_scores(path, key, res.final_performance, returns=res.returns, seconds=res.seconds)
-    run.print(f"scripted expert's scores cached in {path} (later runs of this configuration reuse them)")
-    return res.final_performance
-
-
-def _episodes_done(partial) -> int:
-    """Episodes an interrupted collection already wrote (0 if its progress file is unreadable)."""
-    try:
-        return int(json.loads((partial / "progress.json").read_text())["episodes_done"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return 0
-
-
 def main(argv=None) -> dict:
     run = Run.start("online_dt", OnlineDTConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
-    from trakdis.envs import task_spec
-    from trakdis.modules import make_dt_actor
-    from trakdis.objectives import MaskedOnlineDTLoss
-
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon)
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
-                  action_eps=dt_cfg.action_eps)
+                              action_eps=dt_cfg.action_eps)
     updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
-    n_params = sum(p.numel() for p in actor.parameters())
-    run.print(f"{cfg.task}: DT with {n_params / 1e6:.2f}M parameters ({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
-
-    counters = {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
-                "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None, "phases": {}}
-    state = run.resume_state()
-    if state is not None:
-        counters.update(state["counters"])
-        trajectories = lengths = None
-    phases = PhaseTimer(counters["phases"])
-    if state is None:
+    run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
+              f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
+    state = RunState(run, {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
+                           "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None,
+                           "phases": {}}, step_key="updates", updater=updater)
+    phases = PhaseTimer(state["phases"])
+    state.on_save = lambda: state.update(phases=phases.state_dict())
+    if not state.resuming:  # 1. the expert data: its states' statistics, its best return
         pixels = cfg.collect_pixels or (default_dataset_path(cfg.data, task=cfg.task, horizon=cfg.horizon,
                                                              pixels=True) / "meta.json").exists()
-        path = default_dataset_path(cfg.data, task=cfg.task, horizon=cfg.horizon, pixels=pixels)
-        before = 0 if not partial_path(path).exists() else _episodes_done(partial_path(path))
-        with phases.phase("dataset collection", workers=cfg.data.num_envs) as rec:
-            collecting = not (path / "meta.json").exists()
-            dataset = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=pixels,
-                                     log=run.print, progress=cfg.progress)
-            if collecting:
-                rec["episodes"] += cfg.data.episodes - before
-        if collecting:
-            n, secs = cfg.data.episodes - before, rec["wall"]
-            run.print(f"collected {n} episodes in {secs:.1f} s, {cfg.data.num_envs} workers: "
-                      f"{n / max(secs, 1e-9):.2f} episodes/s, {n * cfg.horizon / max(secs, 1e-9) / cfg.data.num_envs:.1f} "
-                      f"steps/s per worker")
+        dataset = ensure_dataset_timed(cfg.data, phases=phases, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
+                                       pixels=pixels, log=run.print, progress=cfg.progress)
         trajectories, lengths = load_trajectories(dataset, keys=("state", "action", "reward", "normalized_performance"))
         trajectories = trajectories.to_tensordict()
-        valid = valid_mask(lengths, trajectories.shape[1])
-        counters["normalizer"] = StateNormalizer.fit(trajectories["state"][valid],
-                                                      min_scale=cfg.state_scale_floor).state_dict()
+        state["normalizer"] = StateNormalizer.fit(trajectories["state"][valid_mask(lengths, trajectories.shape[1])],
+                                                  min_scale=cfg.state_scale_floor).state_dict()
         rets = trajectories["reward"].sum(dim=(-2, -1))
         final = trajectories["normalized_performance"][torch.arange(len(lengths)), lengths - 1]
         run.print(f"offline data: {trajectories.shape[0]} episodes from {dataset}; return {rets.mean():.3f} "
                   f"(best {rets.max():.3f}); final normalized performance {final.mean():.3f}")
-        counters["best_return"] = float(rets.max())
-        if counters["buffer_capacity"] is None:
-            counters["buffer_capacity"] = int(trajectories.shape[0])
-    # The DT reads standardised states (buffer windows and acting); data and envs stay raw.
-    normalizer = StateNormalizer.from_state_dict(counters["normalizer"])
-    transform = normalizer
-    if cfg.state_noise > 0:  # in state units, before standardisation
-        from trakdis.transforms import StateNoise
-
-        noise = StateNoise(cfg.state_noise, in_keys=["state"], seed=cfg.seed + 7919)
-
-        def transform(td):
-            return normalizer(noise(td))
-    buffer = make_buffer(counters["buffer_capacity"], cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
-                         seed=cfg.seed, transform=transform, early_windows=cfg.early_windows,
-                         replacement=cfg.buffer_replacement)
-    if state is not None:
-        updater.load_state_dict(state["updater"])
-        buffer.load_state_dict(state["buffer"])
-    else:
-        buffer.load_offline(trajectories, lengths)
-
-    def checkpoint():
-        counters["phases"] = phases.state_dict()
-        run.save_checkpoint({"updater": updater.state_dict(), "buffer": buffer.state_dict(),
-                             "counters": counters, "rng": rng_state()}, step=counters["updates"])
-
-    def policy_file(path, kind="teacher"):
-        save_policy(path, kind=kind, task=cfg.task, horizon=cfg.horizon, dt_config=dt_cfg, actor=actor,
-                    observation_key="state", target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
-
-    eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else counters["best_return"]
+        state["best_return"] = float(rets.max())
+        if state["buffer_capacity"] is None:
+            state["buffer_capacity"] = int(trajectories.shape[0])
+    # The DT reads standardised states (buffer windows and acting; noisy ones with --state-noise); data stays raw.
+    normalizer = StateNormalizer.from_state_dict(state["normalizer"])
+    noise = StateNoise(cfg.state_noise, in_keys=["state"], seed=cfg.seed + 7919) if cfg.state_noise > 0 else None
+    buffer = make_buffer(state["buffer_capacity"], cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
+                         seed=cfg.seed, transform=normalizer if noise is None else lambda td: normalizer(noise(td)),
+                         early_windows=cfg.early_windows, replacement=cfg.buffer_replacement)
+    state.objects["buffer"] = buffer
+    state.load() if state.resuming else buffer.load_offline(trajectories, lengths)
+    eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else state["best_return"]
+    explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
     handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
                           target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
-    explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
+    policy_file = lambda path: save_policy(path, kind="teacher", task=cfg.task, horizon=cfg.horizon, dt_config=dt_cfg,  # noqa: E731
+                                           actor=actor, observation_key="state", target_return=eval_rtg,
+                                           rtg_scale=cfg.rtg_scale, normalizer=normalizer)
+    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, policy_seed=cfg.seed)
     eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
-    explore_env = None
-    if counters["rounds"] < cfg.online_rounds:
-        explore_env = handle.make_env(num_envs=cfg.num_envs, split="train", parallel=cfg.parallel,
-                                      target_return=explore_rtg)
-    if state is not None:  # after building the envs, so the RNG streams continue exactly
-        set_rng_state(state["rng"])
+    explore_env = None if state["rounds"] >= cfg.online_rounds else handle.make_env(
+        num_envs=cfg.num_envs, split="train", parallel=cfg.parallel, target_return=explore_rtg)
+    state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     starting = offline_res = expert_job = offline_job = None
     try:
-        # ---------------------------------------------------------------- expert baseline
-        if cfg.eval_expert and counters["expert_eval"] is None:
-            expert = expert_baseline(run, eval_env, cfg, phases)
-            if isinstance(expert, BackgroundEvaluation):
-                expert_job = expert
-            else:
-                counters["expert_eval"] = float(np.mean(expert))
-
-        # ---------------------------------------------------------------- offline pretraining
-        history = []
-        bar = progress(total=cfg.offline_updates, initial=min(counters["updates"], cfg.offline_updates), desc="offline")
-        # the env workers start (spawn, imports) on the core that training leaves idle
+        if cfg.eval_expert and state["expert_eval"] is None:  # 2. the scripted expert on the same episodes
+            expert = evals.expert_baseline(run, eval_env, phases, cache_root=cfg.data.root, use_cache=cfg.expert_cache,
+                                           background=cfg.background_eval)
+            expert_job = expert if isinstance(expert, BackgroundEvaluation) else None
+            state["expert_eval"] = None if expert_job else float(np.mean(expert))
+        # 3. offline pretraining; the env workers start (spawn, imports) on the core that training leaves idle
         starting = start_in_background(eval_env, *([explore_env] if explore_env is not None else []))
         with phases.phase("offline training"):
-            while counters["updates"] < cfg.offline_updates:
-                if run.should_stop(counters["updates"]):
-                    checkpoint()
-                    run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
-                    return counters
-                history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
-                counters["updates"] += 1
-                bar.update(1)
-                u = counters["updates"]
-                if u % cfg.log_every == 0 or u == cfg.offline_updates:
-                    run.log(u, {**mean_metrics(history), "phase": 0})
-                    history = []
-                if u % cfg.checkpoint_every == 0 and u < cfg.offline_updates:
-                    checkpoint()
-        bar.close()
+            if not train_updates(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
+                                 total=cfg.offline_updates, log_every=cfg.log_every, desc="offline",
+                                 checkpoint_every=cfg.checkpoint_every, log_extra={"phase": 0}):
+                return dict(state)
         with phases.phase("env worker start (after training)"):  # what training did not hide
             starting.join()
-        if counters["offline_eval"] is None:
-            if not counters.get("offline_policy_saved"):  # once: a resumed run's actor has moved on
+        if state["offline_eval"] is None:
+            if not state.get("offline_policy_saved"):  # once: a resumed run's actor has moved on
                 policy_file(run.dir / "policy_offline.pt")
-                counters["offline_policy_saved"] = True
-                checkpoint()
-            if cfg.background_eval and counters["rounds"] < cfg.online_rounds:
-                offline_job = background_evaluation(run.dir / "policy_offline.pt", cfg, phases, "offline teacher")
+                state["offline_policy_saved"] = True
+                state.save()
+            if cfg.background_eval and state["rounds"] < cfg.online_rounds:
+                offline_job = evals.in_background(run.dir / "policy_offline.pt", phases)
             else:
                 with phases.phase("evaluation (offline teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-                    res = offline_res = evaluate(run, handle, eval_env, cfg, counters["updates"],
-                                                 "after offline pretraining")
-                counters["offline_eval"] = float(res.final_performance.mean())
-                counters["offline_scores"] = res.final_performance.tolist()
-                checkpoint()
-
-        # ---------------------------------------------------------------- online fine-tuning
-        if counters["rounds"] < cfg.online_rounds:
+                    offline_res = evals.run(run, handle, eval_env, step=state["updates"], tag="after offline pretraining")
+                state.update(offline_eval=float(offline_res.final_performance.mean()),
+                             offline_scores=offline_res.final_performance.tolist())
+                state.save()
+        # 4. online fine-tuning: roll out, add to the buffer, update
+        if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
             updater.set_constant_lr(cfg.online_lr if cfg.online_lr is not None else cfg.lr * cfg.min_lr_fraction)
             try:
-                while counters["rounds"] < cfg.online_rounds:
+                while state["rounds"] < cfg.online_rounds:
                     with phases.phase("online rollouts", episodes=cfg.episodes_per_round, workers=cfg.num_envs):
                         res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
                                            max_steps=cfg.horizon, deterministic=cfg.exploration == "mean",
-                                           keep_episodes=True, desc="rollout",
-                                           seed=cfg.seed + 1000 * (counters["rounds"] + 1))
+                                           keep_episodes=True, desc="rollout", seed=cfg.seed + 1000 * (state["rounds"] + 1))
                     actor.train()
                     kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
                                for ep in (res.episodes if not cfg.offline_control else ()))
-                    counters["rounds"] += 1
+                    state["rounds"] += 1
                     with phases.phase("online updates"):
                         history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
-                                   progress(range(cfg.updates_per_round), desc=f"round {counters['rounds']}")]
-                    counters["updates"] += cfg.updates_per_round
-                    run.log(counters["updates"], {**mean_metrics(history), "phase": 1,
-                                                  "online/normalized_performance": float(res.final_performance.mean()),
-                                                  "online/return": float(res.returns.mean()),
-                                                  "online/round": counters["rounds"], "online/kept": kept,
-                                                  "online/buffer_online_fraction": buffer.online_fraction})
-                    run.print(f"round {counters['rounds']}/{cfg.online_rounds}: rollout normalized performance "
-                              f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f} "
-                              f"({kept} kept; buffer {buffer.online_fraction:.0%} online), "
-                              f"loss_nll {run.logger.last('train/loss_nll'):.3f}; {res.rate()}")
-                    if cfg.eval_every and counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.online_rounds:
+                                   progress(range(cfg.updates_per_round), desc=f"round {state['rounds']}")]
+                    state["updates"] += cfg.updates_per_round
+                    run.log(state["updates"], {**mean_metrics(history), "phase": 1,
+                                               "online/normalized_performance": float(res.final_performance.mean()),
+                                               "online/return": float(res.returns.mean()), "online/round": state["rounds"],
+                                               "online/kept": kept, "online/buffer_online_fraction": buffer.online_fraction})
+                    run.print(f"round {state['rounds']}/{cfg.online_rounds}: rollout normalized performance "
+                              f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f} ({kept} kept; buffer "
+                              f"{buffer.online_fraction:.0%} online), loss_nll {run.logger.last('train/loss_nll'):.3f}; {res.rate()}")
+                    if cfg.eval_every and state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.online_rounds:
                         with phases.phase("evaluation (mid-run)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-                            evaluate(run, handle, eval_env, cfg, counters["updates"], f"after round {counters['rounds']}")
-                    checkpoint()
-                    if run.should_stop(counters["updates"]):
-                        run.print(f"stopping after {counters['updates']} updates (--stop-after); continue with --resume")
-                        return counters
+                            evals.run(run, handle, eval_env, step=state["updates"], tag=f"after round {state['rounds']}")
+                    state.save()
+                    if run.should_stop(state["updates"]):
+                        run.print(f"stopping after {state['updates']} updates (--stop-after); continue with --resume")
+                        return dict(state)
             finally:
                 close_env(explore_env)
                 explore_env = None
-
         if cfg.online_rounds == 0 and offline_res is not None:
             res = offline_res  # no update since: the same policy on the same episodes
         else:
             with phases.phase("evaluation (final teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-                res = evaluate(run, handle, eval_env, cfg, counters["updates"], "after online fine-tuning")
+                res = evals.run(run, handle, eval_env, step=state["updates"], tag="after online fine-tuning")
         if offline_job is not None:
-            off = finish_background(run, offline_job, phases, cfg, "offline teacher", cfg.offline_updates,
-                                    "eval", "after offline pretraining")
-            counters["offline_eval"] = float(off.final_performance.mean())
-            counters["offline_scores"] = off.final_performance.tolist()
+            off = evals.finish_background(run, offline_job, phases, "offline teacher", step=cfg.offline_updates,
+                                          tag="after offline pretraining")
+            state.update(offline_eval=float(off.final_performance.mean()), offline_scores=off.final_performance.tolist())
         if expert_job is not None:
-            off = finish_background(run, expert_job, phases, cfg, "scripted expert", 0, "eval_expert", "scripted expert")
-            write_expert_scores(expert_job.cache_path, expert_job.cache_key, off.final_performance,
-                                returns=off.returns, seconds=off.seconds)
-            run.print(f"scripted expert's scores cached in {expert_job.cache_path} (later runs of this configuration "
-                      f"reuse them)")
-            counters["expert_eval"] = float(np.mean(off.final_performance))
+            off = evals.finish_background(run, expert_job, phases, "scripted expert", step=0, tag="scripted expert",
+                                          prefix="eval_expert")
+            state["expert_eval"] = float(off.final_performance.mean())
     finally:
         for job in (expert_job, offline_job):
             if job is not None and not job.done():
@@ -447,36 +302,20 @@ def main(argv=None) -> dict:
                 for env in (eval_env, explore_env):
                     if env is not None:
                         close_env(env)
-    final, final_scores = float(res.final_performance.mean()), res.final_performance
-    counters["final_eval"] = final
-    with phases.phase("files and curves"):
+    state["final_eval"] = float(res.final_performance.mean())
+    with phases.phase("files and curves"):  # 5. save
         policy_file(run.dir / "policy.pt")
-        checkpoint()
+        state.save()
         run.finish(columns=[c for c in ("train/loss_nll", "train/entropy", "online/normalized_performance",
                                         "eval/normalized_performance", "eval_expert/normalized_performance")
                             if c in run.logger.frame().columns])
-    summary = {"expert": counters["expert_eval"], "offline": counters["offline_eval"], "online": final}
-    ses = {"online": standard_error(final_scores)}
-    gain = gain_se = None
-    if counters["offline_scores"] is not None:  # None: resumed from a checkpoint of an earlier trakdis
-        offline_scores = np.asarray(counters["offline_scores"], dtype=np.float64)
-        gain, gain_se = paired_difference(offline_scores, final_scores)
-        ses["offline"] = standard_error(offline_scores)
-    run.print(f"phases ({'resumed run: earlier parts included; ' if run.resuming else ''}wall and CPU seconds, "
-              f"CPU of this process and its env workers):\n" + phases.table(total_wall=time.time() - run.t0))
-    phases_file = {"phases": phases.state_dict(), "episodes_simulated": phases.episodes,
-                   "wall_seconds_this_process": time.time() - run.t0, "num_envs": cfg.num_envs, "parallel": cfg.parallel,
-                   "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
-    atomic_write_bytes(run.dir / "phases.json", (json.dumps(phases_file, indent=1) + "\n").encode())
-    run.print(f"episodes simulated: {phases.episodes} ("
-              + ", ".join(f"{k} {r['episodes']}" for k, r in phases.records.items() if r["episodes"]) + ")")
-    run.print("eval normalized performance (mean +- standard error): "
-              + ", ".join(f"{k} {v:.3f}" + (f" +- {ses[k]:.3f}" if k in ses else "") for k, v in summary.items()
-                          if v is not None)
-              + (f"; online - offline {gain:+.3f} +- {gain_se:.3f} (paired: the same {cfg.eval_episodes} eval "
-                 f"episodes)" if gain is not None else "") + f"; {time.time() - run.t0:.0f} s")
-    return {**counters, **summary, "gain": gain, "gain_se": gain_se, "offline_se": ses.get("offline"),
-            "online_se": ses["online"], "episodes_simulated": phases.episodes}
+    phases.report(run.print, run.dir / "phases.json", total_wall=time.time() - run.t0, resumed=run.resuming,
+                  extra={"num_envs": cfg.num_envs, "parallel": cfg.parallel})
+    summary = {"expert": state["expert_eval"], "offline": state["offline_eval"], "online": state["final_eval"]}
+    line, numbers = compare_scores(summary, {"offline": state["offline_scores"], "online": res.final_performance},
+                                   before="offline", after="online")
+    run.print(f"eval normalized performance (mean +- standard error): {line}; {time.time() - run.t0:.0f} s")
+    return {**state, **summary, **numbers, "episodes_simulated": phases.episodes}
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from .dataset import (
     read_meta,
 )
 from .layout import ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, episode_to_trajectory, real_steps, valid_mask
-from .loading import DataConfig, default_dataset_path, ensure_dataset, load_trajectories, make_buffer
+from .loading import DataConfig, default_dataset_path, ensure_dataset, ensure_dataset_timed, load_trajectories, make_buffer
 
 __all__ = [
     "DATASET_FORMAT",
@@ -41,6 +41,7 @@ __all__ = [
     "DataConfig",
     "default_dataset_path",
     "ensure_dataset",
+    "ensure_dataset_timed",
     "load_trajectories",
     "make_buffer",
 ]

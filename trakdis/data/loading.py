@@ -6,6 +6,7 @@ automatically (an interrupted collection resumes when the same command runs agai
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -13,12 +14,12 @@ from typing import Callable, Optional, Sequence
 import torch
 from tensordict import TensorDict
 
-from trakdis.utils.phases import available_workers
+from trakdis.utils.phases import PhaseTimer, available_workers
 
 from .buffer import TrajectoryReplayBuffer
 from .dataset import DatasetError, collect_expert_dataset, load_expert_dataset, partial_path, read_meta
 
-__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "load_trajectories", "make_buffer"]
+__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed", "load_trajectories", "make_buffer"]
 
 
 @dataclass
@@ -90,6 +91,32 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                            image_size=image_size, from_pixels=pixels, noise=cfg.expert_noise, seed=seed,
                            horizon=horizon, progress=progress)
     return path
+
+
+def _episodes_done(partial: Path) -> int:
+    """Episodes an interrupted collection already wrote (0 if its progress file is unreadable)."""
+    try:
+        return int(json.loads((partial / "progress.json").read_text())["episodes_done"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
+def ensure_dataset_timed(cfg: DataConfig, *, phases: PhaseTimer, task: str, horizon: int, seed: int, pixels: bool,
+                         log: Callable[..., None] = print, progress: bool = True) -> Path:
+    """:func:`ensure_dataset` as the phase ``"dataset collection"`` of ``phases`` (the episodes it
+    collects counted there), and a line with the collection's rate when it collected."""
+    path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels)
+    before = 0 if not partial_path(path).exists() else _episodes_done(partial_path(path))
+    with phases.phase("dataset collection", workers=cfg.num_envs) as rec:
+        collecting = not (path / "meta.json").exists()
+        dataset = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=pixels, log=log, progress=progress)
+        if collecting:
+            rec["episodes"] += cfg.episodes - before
+    if collecting:
+        n, secs = cfg.episodes - before, rec["wall"]
+        log(f"collected {n} episodes in {secs:.1f} s, {cfg.num_envs} workers: {n / max(secs, 1e-9):.2f} episodes/s, "
+            f"{n * horizon / max(secs, 1e-9) / cfg.num_envs:.1f} steps/s per worker")
+    return dataset
 
 
 def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tuple[TensorDict, torch.Tensor]:

@@ -13,6 +13,7 @@ from .episodes import (
     summarize,
     write_summary_table,
 )
+from .protocol import EvalProtocol, compare_scores, log_scores
 from .expert_scores import (
     ExpertScoreError,
     expert_score_key,
@@ -23,6 +24,9 @@ from .expert_scores import (
 
 __all__ = [
     "BackgroundEvaluation",
+    "EvalProtocol",
+    "compare_scores",
+    "log_scores",
     "EpisodeResults",
     "episode_frames",
     "markdown_table",

@@ -13,11 +13,15 @@ itself can still be compared: ``wall ~= CPU / workers`` on an idle machine with 
 """
 from __future__ import annotations
 
+import json
 import os
 import resource
 import time
 from contextlib import contextmanager
-from typing import Any, Collection, Iterator, Mapping
+from pathlib import Path
+from typing import Any, Callable, Collection, Iterator, Mapping
+
+from .checkpoint import atomic_write_bytes
 
 __all__ = ["PhaseTimer", "available_workers", "process_tree_cpu_seconds"]
 
@@ -159,3 +163,19 @@ class PhaseTimer:
             lines.append("(wall in parentheses: in a background process at low priority, beside the other phases; "
                          "not part of the total wall)")
         return "\n".join(lines)
+
+    def report(self, print_fn: Callable[[str], Any], path: str | Path | None = None, *, total_wall: float,
+               resumed: bool = False, extra: Mapping[str, Any] | None = None) -> None:
+        """Print the :meth:`table` and the episodes per phase with ``print_fn``, and write ``path``
+        (JSON: the phases, ``episodes_simulated``, ``wall_seconds_this_process`` = ``total_wall``,
+        ``extra`` and the load average)."""
+        print_fn(f"phases ({'resumed run: earlier parts included; ' if resumed else ''}wall and CPU seconds, "
+                 f"CPU of this process and its env workers):\n" + self.table(total_wall=total_wall))
+        if path is not None:
+            data = {"phases": self.state_dict(), "episodes_simulated": self.episodes,
+                    "wall_seconds_this_process": total_wall, **dict(extra or {}),
+                    "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+            atomic_write_bytes(Path(path), (json.dumps(data, indent=1) + "\n").encode())
+        print_fn(f"episodes simulated: {self.episodes} ("
+                 + ", ".join(f"{k} {r['episodes']}" for k, r in self.records.items() if r["episodes"]) + ")")
+

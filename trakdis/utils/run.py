@@ -35,12 +35,12 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 import torch
 
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .config import load_config, parse_config, save_config
 from .logger import WideCSVLogger, make_run_dir
 from .plot import plot_csv
 
-__all__ = ["RunConfig", "Run", "seed_everything"]
+__all__ = ["RunConfig", "Run", "RunState", "seed_everything"]
 
 
 @dataclass
@@ -169,3 +169,51 @@ class Run:
         except Exception as err:  # a figure must never lose a finished run
             print(f"warning: could not draw curves: {err}", file=sys.stderr)
             return None
+
+
+class RunState(dict):
+    """A run's counters (this dict) and the objects whose ``state_dict`` its checkpoint holds.
+
+    ``save()`` writes ``{<name>: obj.state_dict() for each object, "counters": dict(self), "rng":
+    <RNG state>}`` at step ``self[step_key]``; on ``--resume`` the counters come back at once, the
+    objects with :meth:`load` and the RNG streams with :meth:`restore_rng` (each when the recipe has
+    built what must come before it)::
+
+        state = RunState(run, {"updates": 0}, step_key="updates", updater=updater, buffer=buffer)
+        state.load()           # no-op on a fresh run
+        ...
+        state["updates"] += 1
+        state.save()
+
+    ``on_save`` (if set) is called first, to put derived values into the counters.
+    """
+
+    def __init__(self, run: Run, counters: Mapping[str, Any], *, step_key: str, **objects: Any):
+        super().__init__(counters)
+        self.run, self.step_key, self.objects = run, step_key, objects
+        self.on_save = None
+        self.checkpoint = run.resume_state()
+        if self.checkpoint is not None:
+            self.update(self.checkpoint["counters"])
+
+    @property
+    def resuming(self) -> bool:
+        """Whether a checkpoint is being resumed from."""
+        return self.checkpoint is not None
+
+    def load(self, *names: str) -> None:
+        """Load the named objects' (default: all) state from the checkpoint being resumed, if any."""
+        if self.checkpoint is not None:
+            for name in names or tuple(self.objects):
+                self.objects[name].load_state_dict(self.checkpoint[name])
+
+    def restore_rng(self) -> None:
+        """Set the RNG streams to the checkpoint's, if resuming."""
+        if self.checkpoint is not None:
+            set_rng_state(self.checkpoint["rng"])
+
+    def save(self) -> Path:
+        if self.on_save is not None:
+            self.on_save()
+        return self.run.save_checkpoint({**{k: obj.state_dict() for k, obj in self.objects.items()},
+                                         "counters": dict(self), "rng": rng_state()}, step=self[self.step_key])

@@ -1,0 +1,186 @@
+"""A run's evaluation protocol: which episodes every evaluation of a run plays, and how their scores
+reach the run's CSV log and output (written once for every recipe).
+
+    evals = EvalProtocol("ClothFold", horizon=100, episodes=30, num_envs=2, seed=10_000, policy_seed=0)
+    res = evals.run(run, handle, env, step=1500, tag="after offline pretraining")   # logs eval/*
+    expert = evals.expert_baseline(run, env, phases, cache_root="datasets")          # cached, or measured
+    job = evals.in_background("runs/x/policy_offline.pt", phases)                    # beside training
+    res = evals.finish_background(run, job, phases, "offline teacher", step=1500, tag="...")
+
+Every evaluation replays the same configurations (the same ``seed``): a run's scores are
+comparable, and the difference of two policies' scores is a paired one.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from torch import nn
+
+from trakdis.utils.phases import PhaseTimer
+
+from .background import BackgroundEvaluation
+from .episodes import EpisodeResults, paired_difference, run_episodes, standard_error, summarize
+from .expert_scores import expert_score_key, expert_score_path, read_expert_scores, write_expert_scores
+
+__all__ = ["EvalProtocol", "compare_scores", "log_scores"]
+
+
+def log_scores(run: Any, step: int, prefix: str, tag: str, scores: Sequence[float] | np.ndarray,
+               returns: Sequence[float] | np.ndarray | None = None, *, detail: str = "", note: str = "",
+               extra: dict[str, float] | None = None) -> dict[str, float]:
+    """Log ``<prefix>/normalized_performance`` and ``<prefix>/std`` (and ``<prefix>/return``, the
+    mean of ``returns``, when given; and ``extra``) at ``step`` in ``run``'s log, and print one line.
+
+    With ``returns`` the line reads ``"<tag>: normalized performance m +- s (std; standard error e;
+    return r, n eval episodes); <detail>"``; without, ``"<tag>: normalized performance m +- s (n eval
+    episodes<note>)"``. ``run`` is a :class:`~trakdis.utils.run.Run` (``log``, ``print``)."""
+    s = summarize(scores)
+    metrics = {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"]}
+    if returns is not None:
+        metrics[f"{prefix}/return"] = float(np.mean(returns))
+    metrics.update(extra or {})
+    run.log(step, metrics)
+    if returns is not None:
+        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} (std; standard error "
+                  f"{standard_error(scores):.3f}; return {np.mean(returns):.3f}, {s['n']} eval episodes)"
+                  + (f"; {detail}" if detail else ""))
+    else:
+        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} ({s['n']} eval episodes{note})")
+    return metrics
+
+
+def compare_scores(means: dict[str, float | None], scores: dict[str, Any], *, before: str, after: str) -> tuple[str, dict]:
+    """One line of mean scores (``"expert 0.830, offline 0.533 +- 0.104, online 0.727 +- 0.047; online
+    - offline +0.194 +- 0.118 (paired: the same 30 eval episodes)"``) and its numbers: ``gain``,
+    ``gain_se`` (the paired difference ``after - before``, None without both score arrays) and
+    ``<name>_se`` (standard error; None without scores) for each name of ``scores``. ``means``: name -> mean (None: left
+    out); ``scores``: name -> per-episode scores of the same episodes (None: unknown)."""
+    ses = {k: None if v is None else standard_error(np.asarray(v, dtype=np.float64)) for k, v in scores.items()}
+    gain = gain_se = None
+    if scores.get(before) is not None and scores.get(after) is not None:
+        gain, gain_se = paired_difference(np.asarray(scores[before], dtype=np.float64), scores[after])
+    line = ", ".join(f"{k} {v:.3f}" + (f" +- {ses[k]:.3f}" if ses.get(k) is not None else "") for k, v in means.items()
+                     if v is not None)
+    if gain is not None:
+        line += (f"; {after} - {before} {gain:+.3f} +- {gain_se:.3f} (paired: the same "
+                 f"{len(scores[after])} eval episodes)")
+    return line, {"gain": gain, "gain_se": gain_se, **{f"{k}_se": v for k, v in ses.items()}}
+
+
+@dataclass
+class EvalProtocol:
+    """The evaluation episodes of a run: ``episodes`` episodes of ``task`` (eval split, ``horizon``
+    steps, mean actions) on ``num_envs`` environments reseeded with ``seed`` before each
+    evaluation; the acting policy is made with ``policy_seed``."""
+
+    task: str
+    horizon: int
+    episodes: int
+    num_envs: int = 1
+    seed: int = 10_000
+    policy_seed: int | None = None
+    log_returns: bool = True
+    """log and print the mean return beside the scores (:func:`log_scores` with ``returns``)"""
+
+    def run(self, run: Any, handle: Any, env: Any, *, step: int, tag: str, prefix: str = "eval",
+            keep_mode: nn.Module | None = None, state_error_cm: Callable[[Any], dict] | None = None,
+            desc: str | None = None) -> EpisodeResults:
+        """Play the episodes of ``handle`` (a :class:`~trakdis.policies.PolicyHandle`) in ``env`` and
+        log them (:func:`log_scores`). ``keep_mode``: a module whose train/eval mode is restored
+        afterwards (default: the handle's actor). ``state_error_cm`` (a task spec's): also log the
+        encoder's error on the visited states, ``<prefix>/encoder_<group>``, for a policy reading
+        images."""
+        keep_mode = handle.actor if keep_mode is None else keep_mode
+        was_training = keep_mode.training if keep_mode is not None else False
+        errors = state_error_cm is not None and handle.uses_pixels
+        res = run_episodes(env, handle.make_policy(seed=self.policy_seed), self.episodes, max_steps=self.horizon,
+                           desc=desc if desc is not None else f"eval ({tag})", seed=self.seed, keep_episodes=errors)
+        if keep_mode is not None:
+            keep_mode.train(was_training)
+        extra, note = {}, ""
+        if errors:
+            import torch
+
+            err = torch.cat([(ep["state_estimate"] - ep["state"]).abs() for ep in res.episodes])
+            extra = {f"{prefix}/encoder_{k}": v for k, v in state_error_cm(err).items()}
+            note = (f"; encoder error corners {extra[f'{prefix}/encoder_corners_cm']:.2f} cm, pickers "
+                    f"{extra[f'{prefix}/encoder_pickers_cm']:.2f} cm")
+        log_scores(run, step, prefix, tag, res.final_performance, res.returns if self.log_returns else None,
+                   detail=res.rate(), note=note, extra=extra)
+        return res
+
+    def run_snapshot(self, run: Any, handle: Any, *, step: int, tag: str, parallel: bool = False,
+                     keep_mode: nn.Module | None = None, desc: str = "eval") -> EpisodeResults:
+        """:meth:`run` on a fresh env that runs a frozen copy of ``handle.encoder`` (an image policy
+        in training: the env's ``EncoderTransform`` freezes what it is given, and a ``ParallelEnv``
+        would pickle it), closed afterwards."""
+        from trakdis.envs import close_env
+
+        snapshot = dataclasses.replace(handle, encoder=copy.deepcopy(handle.encoder).eval())
+        env = snapshot.make_env(num_envs=self.num_envs, split="eval", parallel=parallel)
+        try:
+            return self.run(run, snapshot, env, step=step, tag=tag, keep_mode=keep_mode, desc=desc)
+        finally:
+            close_env(env)
+
+    # ------------------------------------------------------------------ background evaluations
+    def in_background(self, spec: str | Path, phases: PhaseTimer) -> BackgroundEvaluation:
+        """These episodes of the policy file ``spec`` (or ``"expert"``) in a background process at low
+        priority, left out of ``phases`` until :meth:`finish_background` books it."""
+        job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=self.episodes,
+                                   num_envs=self.num_envs, env_seed=self.seed, policy_seed=self.policy_seed)
+        phases.exclude(job.pid)
+        return job
+
+    def finish_background(self, run: Any, job: BackgroundEvaluation, phases: PhaseTimer, what: str, *, step: int,
+                          tag: str, prefix: str = "eval") -> EpisodeResults:
+        """Wait for ``job``, book its time in ``phases`` and log its scores at ``step``; a job of
+        :meth:`expert_baseline` also writes the expert's score cache."""
+        with phases.phase(f"waiting for the background evaluation ({what})"):
+            res = job.result()  # its CPU seconds join RUSAGE_CHILDREN here: booked to its own row at once
+            phases.add_background(f"evaluation ({what}, background)", job.pid, episodes=self.episodes,
+                                  wall=job.wall_seconds, cpu=job.cpu_seconds, workers=1)
+        log_scores(run, step, prefix, tag, res.final_performance, res.returns,
+                   detail=f"{self.episodes} episodes in {job.wall_seconds:.0f} s in a background process")
+        if getattr(job, "cache_path", None) is not None:
+            self._cache(run, job.cache_path, job.cache_key, res)
+        return res
+
+    # ------------------------------------------------------------------ the scripted expert
+    def expert_baseline(self, run: Any, env: Any, phases: PhaseTimer, *, cache_root: str | Path,
+                        use_cache: bool = True, background: bool = False) -> np.ndarray | BackgroundEvaluation:
+        """The scripted expert's scores on these episodes, logged under ``eval_expert/`` at step 0:
+        read from the cache under ``cache_root`` (``use_cache``), or measured and cached. Measured
+        with ``background``: returns a :class:`BackgroundEvaluation` for :meth:`finish_background`
+        (which caches it); else on ``env`` (a DT policy's eval env: the expert ignores its
+        return-to-go)."""
+        key = expert_score_key(task=self.task, split="eval", horizon=self.horizon, episodes=self.episodes,
+                               seed=self.seed, num_envs=self.num_envs)
+        path = expert_score_path(cache_root, key)
+        cached = read_expert_scores(path, key) if use_cache else None
+        if cached is not None:
+            scores, returns = cached
+            log_scores(run, 0, "eval_expert", "scripted expert", scores, returns,
+                       detail=f"measured once, cached in {path}")
+            return scores
+        if background:
+            job = self.in_background("expert", phases)
+            job.cache_path, job.cache_key = path, key
+            return job
+        from trakdis.policies import load_policy
+
+        expert = load_policy("expert", task=self.task, horizon=self.horizon)
+        with phases.phase("expert evaluation", episodes=self.episodes, workers=self.num_envs):
+            res = self.run(run, expert, env, step=0, tag="scripted expert", prefix="eval_expert")
+        self._cache(run, path, key, res)
+        return res.final_performance
+
+    @staticmethod
+    def _cache(run: Any, path: Path, key: dict, res: EpisodeResults) -> None:
+        write_expert_scores(path, key, res.final_performance, returns=res.returns, seconds=res.seconds)
+        run.print(f"scripted expert's scores cached in {path} (later runs of this configuration reuse them)")
