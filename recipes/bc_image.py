@@ -17,8 +17,6 @@ Writes ``runs/bc_image/<name>/``: ``config.json``, ``log.csv``, ``curves.png``, 
 """
 from __future__ import annotations
 
-import copy
-import dataclasses
 import sys
 from dataclasses import dataclass, field
 from typing import Literal
@@ -26,15 +24,13 @@ from typing import Literal
 import torch
 
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps
-from trakdis.envs import close_env
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import run_episodes
+from trakdis.evaluation import EvalProtocol
 from trakdis.modules.baselines import ImageTrunkConfig
 from trakdis.optim import OptimConfig, mean_metrics
 from trakdis.policies import PolicyHandle, save_image_policy
-from trakdis.utils.checkpoint import rng_state, set_rng_state
 from trakdis.utils.progress import progress
-from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
@@ -101,30 +97,16 @@ def main(argv=None) -> dict:
     run.print(f"BC-image: {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters, "
               f"random shift {cfg.trunk.pad} px, loss {cfg.loss_function}")
 
-    counters = {"epoch": 0, "final_eval": None}
-    state = run.resume_state()
-    if state is not None:
-        updater.load_state_dict(state["updater"])
-        counters.update(state["counters"])
-        set_rng_state(state["rng"])
+    state = RunState(run, {"epoch": 0, "final_eval": None}, step_key="epoch", updater=updater)
+    state.load()
+    state.restore_rng()
     handle = PolicyHandle("bc_image", cfg.task, cfg.horizon, actor=head, encoder=trunk, observation_key="image_features")
+    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
 
-    def evaluate() -> float:
-        # The env runs a frozen copy of the trunk (EncoderTransform freezes what it is given, and a
-        # ParallelEnv would pickle it anyway); the head acts in-process.
-        snapshot = dataclasses.replace(handle, encoder=copy.deepcopy(trunk).eval())
-        env = snapshot.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
-        try:
-            res = run_episodes(env, snapshot.make_policy(), cfg.eval_episodes, max_steps=cfg.horizon,
-                               desc="eval", seed=cfg.seed + 10_000)  # the same configurations every time
-        finally:
-            close_env(env)
-            actor.train()
-        s = res.summary()
-        run.log(counters["epoch"], {"eval/normalized_performance": s["mean"], "eval/std": s["std"]})
-        run.print(f"epoch {counters['epoch']}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} "
-                  f"({s['n']} eval episodes)")
-        return s["mean"]
+    def evaluate() -> float:  # the current weights, on the same configurations every time
+        res = evals.run_snapshot(run, handle, step=state["epoch"], tag=f"epoch {state['epoch']}", parallel=cfg.parallel,
+                                 keep_mode=actor)
+        return res.summary()["mean"]
 
     def validate() -> dict:
         if val is None:
@@ -135,30 +117,28 @@ def main(argv=None) -> dict:
         loss.train()
         return {f"val/{k}": float(torch.stack([o[k] for o in outs]).mean()) for k in ("loss_bc", "action_mse")}
 
-    while counters["epoch"] < cfg.epochs:
+    while state["epoch"] < cfg.epochs:
         order = torch.randperm(train.shape[0])
         history = [updater.step(train[order[i : i + cfg.batch_size]].to(cfg.device))
-                   for i in progress(range(0, train.shape[0], cfg.batch_size), desc=f"epoch {counters['epoch'] + 1}")]
-        counters["epoch"] += 1
-        run.log(counters["epoch"], {**mean_metrics(history), **validate()})
-        run.print(f"epoch {counters['epoch']}/{cfg.epochs}: loss_bc {run.logger.last('train/loss_bc'):.4f}, "
+                   for i in progress(range(0, train.shape[0], cfg.batch_size), desc=f"epoch {state['epoch'] + 1}")]
+        state["epoch"] += 1
+        run.log(state["epoch"], {**mean_metrics(history), **validate()})
+        run.print(f"epoch {state['epoch']}/{cfg.epochs}: loss_bc {run.logger.last('train/loss_bc'):.4f}, "
                   f"action MSE {run.logger.last('train/action_mse'):.4f}")
-        if counters["epoch"] % cfg.eval_every == 0 and counters["epoch"] < cfg.epochs:
+        if state["epoch"] % cfg.eval_every == 0 and state["epoch"] < cfg.epochs:
             evaluate()
-        run.save_checkpoint({"updater": updater.state_dict(), "counters": counters, "rng": rng_state()},
-                            step=counters["epoch"])
-        if run.should_stop(counters["epoch"]) and counters["epoch"] < cfg.epochs:
-            run.print(f"stopping after epoch {counters['epoch']} (--stop-after); continue with --resume")
-            return counters
-    if counters["final_eval"] is None:
-        counters["final_eval"] = evaluate()
+        state.save()
+        if run.should_stop(state["epoch"]) and state["epoch"] < cfg.epochs:
+            run.print(f"stopping after epoch {state['epoch']} (--stop-after); continue with --resume")
+            return dict(state)
+    if state["final_eval"] is None:
+        state["final_eval"] = evaluate()
     save_image_policy(run.dir / "policy.pt", kind="bc_image", task=cfg.task, horizon=cfg.horizon, trunk=trunk,
-                      actor=head, head_config=bc_cfg, extra={"dataset": str(path), "epochs": counters["epoch"]})
-    run.save_checkpoint({"updater": updater.state_dict(), "counters": counters, "rng": rng_state()},
-                        step=counters["epoch"])
+                      actor=head, head_config=bc_cfg, extra={"dataset": str(path), "epochs": state["epoch"]})
+    state.save()
     run.finish()
-    run.print(f"BC-image: eval normalized performance {counters['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
-    return counters
+    run.print(f"BC-image: eval normalized performance {state['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
+    return dict(state)
 
 
 if __name__ == "__main__":

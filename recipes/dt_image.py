@@ -21,8 +21,6 @@ Writes ``runs/dt_image/<name>/``: ``config.json``, ``log.csv``, ``curves.png``, 
 """
 from __future__ import annotations
 
-import copy
-import dataclasses
 import sys
 from dataclasses import dataclass, field
 from typing import Optional
@@ -30,16 +28,14 @@ from typing import Optional
 import torch
 
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories, make_buffer
-from trakdis.envs import close_env
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import run_episodes
+from trakdis.evaluation import EvalProtocol
 from trakdis.modules import DTConfig
 from trakdis.modules.baselines import ImageTrunkConfig
-from trakdis.optim import OptimConfig, mean_metrics
+from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle, save_image_policy
-from trakdis.utils.checkpoint import rng_state, set_rng_state
-from trakdis.utils.progress import progress
-from trakdis.utils.run import Run, RunConfig
+from trakdis.training import train_updates
+from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
@@ -108,69 +104,36 @@ def main(argv=None) -> dict:
     buffer = make_buffer(data.shape[0], dt_cfg.context_len, cfg.horizon, 1.0,
                          keys=("pixels",), seed=cfg.seed, early_windows=cfg.early_windows)
     returns = data.get("reward").sum(dim=(-2, -1))
-    counters = {"updates": 0, "best_return": float(returns.max()), "final_eval": None}
-    state = run.resume_state()
-    if state is not None:
-        updater.load_state_dict(state["updater"])
-        counters.update(state["counters"])
+    state = RunState(run, {"updates": 0, "best_return": float(returns.max()), "final_eval": None}, step_key="updates",
+                     updater=updater, sampler=buffer.sampler)
     buffer.load_offline(data.to_tensordict(), lengths)  # the same data on resume; the sampler state follows
-    if state is not None:
-        buffer.sampler.load_state_dict(state["sampler"])
-        set_rng_state(state["rng"])
+    state.load()
+    state.restore_rng()
     run.print(f"{path}: {data.shape[0]} expert episodes, return {returns.mean():.3f} (best {returns.max():.3f})")
-    eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else counters["best_return"]
+    eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else state["best_return"]
     handle = PolicyHandle("dt_image", cfg.task, cfg.horizon, actor=head, encoder=trunk, observation_key="image_features",
                           target_return=eval_rtg)
+    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
 
-    def evaluate() -> float:
-        # A frozen copy of the trunk in the env (EncoderTransform freezes its encoder; a ParallelEnv
-        # would pickle it): the current weights, while the training trunk keeps its gradients.
-        snapshot = dataclasses.replace(handle, encoder=copy.deepcopy(trunk).eval())
-        env = snapshot.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
-        try:
-            res = run_episodes(env, snapshot.make_policy(), cfg.eval_episodes, max_steps=cfg.horizon,
-                               desc="eval", seed=cfg.seed + 10_000)  # the same configurations every time
-        finally:
-            close_env(env)
-            actor.train()
-        s = res.summary()
-        run.log(counters["updates"], {"eval/normalized_performance": s["mean"], "eval/std": s["std"]})
-        run.print(f"update {counters['updates']}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} "
-                  f"({s['n']} eval episodes)")
-        return s["mean"]
+    def evaluate(u: int) -> float:  # the current weights, on the same configurations every time
+        res = evals.run_snapshot(run, handle, step=u, tag=f"update {u}", parallel=cfg.parallel, keep_mode=actor)
+        return res.summary()["mean"]
 
-    def checkpoint():
-        run.save_checkpoint({"updater": updater.state_dict(), "sampler": buffer.sampler.state_dict(),
-                             "counters": counters, "rng": rng_state()}, step=counters["updates"])
-
-    history = []
-    bar = progress(total=cfg.updates, initial=counters["updates"], desc="updates")
-    while counters["updates"] < cfg.updates:
-        history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
-        counters["updates"] += 1
-        bar.update(1)
-        u = counters["updates"]
-        if u % cfg.log_every == 0 or u == cfg.updates:
-            run.log(u, mean_metrics(history))
-            run.print(f"update {u}/{cfg.updates}: loss_nll {run.logger.last('train/loss_nll'):.3f}")
-            history = []
-        if u % cfg.eval_every == 0 and u < cfg.updates:
-            evaluate()
-        if u < cfg.updates and (u % cfg.checkpoint_every == 0 or run.should_stop(u)):
-            checkpoint()
-            if run.should_stop(u):
-                run.print(f"stopping after {u} updates (--stop-after); continue with --resume")
-                return counters
-    bar.close()
-    if counters["final_eval"] is None:
-        counters["final_eval"] = evaluate()
+    if not train_updates(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
+                         total=cfg.updates, log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
+                         on_log=lambda u: run.print(f"update {u}/{cfg.updates}: loss_nll "
+                                                    f"{run.logger.last('train/loss_nll'):.3f}"),
+                         on_update=lambda u: evaluate(u) if u % cfg.eval_every == 0 and u < cfg.updates else None):
+        return dict(state)
+    if state["final_eval"] is None:
+        state["final_eval"] = evaluate(state["updates"])
     save_image_policy(run.dir / "policy.pt", kind="dt_image", task=cfg.task, horizon=cfg.horizon, trunk=trunk,
                       actor=head, head_config=dt_cfg, target_return=eval_rtg,
-                      extra={"dataset": str(path), "updates": counters["updates"]})
-    checkpoint()
+                      extra={"dataset": str(path), "updates": state["updates"]})
+    state.save()
     run.finish()
-    run.print(f"DT-image: eval normalized performance {counters['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
-    return counters
+    run.print(f"DT-image: eval normalized performance {state['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
+    return dict(state)
 
 
 if __name__ == "__main__":
