@@ -37,14 +37,14 @@ import torch
 
 from trakdis.data import DataConfig, ensure_dataset, episode_to_trajectory, load_trajectories, make_buffer
 from trakdis.envs import close_env
-from trakdis.evaluation import run_episodes
+from trakdis.evaluation import EvalProtocol, run_episodes
 from trakdis.optim import OptimConfig, mean_metrics
-from trakdis.policies import PolicyHandle, load_encoder, load_policy, save_policy
-from trakdis.transforms import ProprioceptionOverride, StateNormalizer
-from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, rng_state, set_rng_state
+from trakdis.policies import PolicyHandle, load_encoder, load_policy, save_policy, weight_copied_student
+from trakdis.transforms import ProprioceptionOverride
+from trakdis.utils.checkpoint import CheckpointError
 from trakdis.utils.logger import latest_run_dir
 from trakdis.utils.progress import progress
-from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
@@ -145,7 +145,6 @@ def _episode_shares(cfg: DistillConfig, round_index: int) -> list[int]:
 def main(argv=None) -> dict:
     run = Run.start("distill", DistillConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
-    from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
     from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
     from trakdis.envs import task_spec
     from trakdis.transforms import StateNoise
@@ -158,10 +157,12 @@ def main(argv=None) -> dict:
     if enc_file["task"] != teacher.task:
         raise ValueError(f"encoder {enc_path} is for {enc_file['task']}, teacher {teacher.source} for {teacher.task}")
     task, horizon = teacher.task, teacher.horizon
-    dt_cfg = DTConfig(**load_checkpoint(teacher.source)["dt_config"])
-    student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=cfg.device)
-    if cfg.weight_copy:
-        copy_teacher_weights(student, teacher.actor)
+    # Teacher and student read states standardised with the teacher's statistics (the student's
+    # weights start as the teacher's, and the encoder's estimates live in state units).
+    proprio_dims = tuple(range(12, task_spec(task).state_dim)) if cfg.proprio_pickers else ()
+    student_handle, dt_cfg = weight_copied_student(teacher, encoder, weight_copy=cfg.weight_copy, device=cfg.device,
+                                                   normalizer_keys=("state", "state_estimate"), proprio_dims=proprio_dims)
+    student, normalizer = student_handle.actor, student_handle.normalizer
     teacher.actor.eval().requires_grad_(False)
     run.print(f"{task}: teacher {teacher.source}, encoder {enc_path} (val MAE {enc_file.get('val_mae', float('nan')):.4f}), "
               f"weight copy {cfg.weight_copy}, {'distillation' if cfg.distill else 'expert imitation (--no-distill)'}")
@@ -174,17 +175,11 @@ def main(argv=None) -> dict:
         loss = MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
         obs_keys = ("state_estimate",)
     updater = cfg.make_updater(loss)
-    # Teacher and student read states standardised with the teacher's statistics (the student's
-    # weights start as the teacher's, and the encoder's estimates live in state units).
-    normalizer = None
-    if teacher.normalizer is not None:
-        normalizer = StateNormalizer(teacher.normalizer.loc, teacher.normalizer.scale, keys=("state", "state_estimate"))
     steps = []  # applied in order to sampled windows, in state units, then standardisation
     if not cfg.distill and cfg.state_noise > 0:
         # No-Distill: noise on the encoded expert data at sampling time, in state units (before
         # standardisation). With distillation the noise is already in the rollouts' estimates.
         steps.append(StateNoise(cfg.state_noise, in_keys=["state_estimate"]))
-    proprio_dims = tuple(range(12, task_spec(task).state_dim)) if cfg.proprio_pickers else ()
     if proprio_dims:
         steps.append(ProprioceptionOverride(proprio_dims))
         obs_keys = tuple(dict.fromkeys([*obs_keys, "state"]))
@@ -202,13 +197,10 @@ def main(argv=None) -> dict:
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
                          transform=transform, early_windows=cfg.early_windows,
                          relabel_return_to_go=not cfg.distill or cfg.expert_data or cfg.return_to_go == "hindsight")
-    counters = {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}
-
-    state = run.resume_state()
-    if state is not None:
-        updater.load_state_dict(state["updater"])
-        buffer.load_state_dict(state["buffer"])
-        counters.update(state["counters"])
+    state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}, step_key="updates",
+                     updater=updater, buffer=buffer)
+    if state.resuming:
+        state.load()
     elif not cfg.distill or cfg.expert_data:
         # The expert dataset's images through the frozen encoder (No-Distill: with the expert's
         # actions as targets; --expert-data: with the teacher's labels on the true states).
@@ -223,32 +215,13 @@ def main(argv=None) -> dict:
         buffer.load_offline(offline, lengths)
         run.print(f"{'--expert-data' if cfg.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
 
-    student_handle = PolicyHandle("student", task, horizon, actor=student, encoder=encoder,
-                                  observation_key="state_estimate", target_return=teacher.target_return,
-                                  rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs, normalizer=normalizer,
-                                  proprio_dims=proprio_dims)
+    evals = EvalProtocol(task, horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
 
-    def evaluate(handle, env, tag, prefix="eval"):
-        was = student.training
-        res = run_episodes(env, handle.make_policy(), cfg.eval_episodes, max_steps=horizon, desc=f"eval ({tag})",
-                           seed=eval_seed, keep_episodes=handle.uses_pixels)  # the same eval configurations every time
-        student.train(was)
-        s = res.summary()
-        metrics = {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"]}
-        if handle.uses_pixels:  # the encoder's error on the states the student visits (eval split)
-            err = torch.cat([(ep["state_estimate"] - ep["state"]).abs() for ep in res.episodes])
-            metrics.update({f"{prefix}/encoder_{k}": v for k, v in task_spec(task).state_error_cm(err).items()})
-        run.log(counters["updates"], metrics)
-        encoder_note = (f"; encoder error corners {metrics[f'{prefix}/encoder_corners_cm']:.2f} cm, pickers "
-                        f"{metrics[f'{prefix}/encoder_pickers_cm']:.2f} cm" if handle.uses_pixels else "")
-        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} ({s['n']} eval episodes{encoder_note})")
-        return s["mean"]
+    def evaluate(handle, env, tag, prefix="eval") -> float:  # the same eval configurations every time
+        res = evals.run(run, handle, env, step=state["updates"], tag=tag, prefix=prefix, keep_mode=student,
+                        state_error_cm=task_spec(task).state_error_cm)
+        return res.summary()["mean"]
 
-    def checkpoint():
-        run.save_checkpoint({"updater": updater.state_dict(), "buffer": buffer.state_dict(), "counters": counters,
-                             "rng": rng_state()}, step=counters["updates"])
-
-    eval_seed = cfg.seed + 10_000
     eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
     teacher_actor_handle = PolicyHandle(
         "teacher", task, horizon, actor=teacher.actor, encoder=encoder, observation_key="state",
@@ -259,60 +232,59 @@ def main(argv=None) -> dict:
     # Rollouts carry both the true state and the encoder's (noisy) estimate.
     roll_envs = [h.make_env(num_envs=cfg.num_envs, split="train", state_noise=cfg.state_noise,
                             noise_seed=cfg.seed + 7919 + i, parallel=cfg.parallel) for i, h in enumerate(actors)]
-    if state is not None:  # after building the envs, so the RNG streams continue exactly
-        set_rng_state(state["rng"])
+    state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     try:
-        if cfg.eval_teacher and counters["teacher_eval"] is None:
+        if cfg.eval_teacher and state["teacher_eval"] is None:
             t_env = teacher.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
             try:
-                counters["teacher_eval"] = evaluate(teacher, t_env, "teacher", prefix="eval_teacher")
+                state["teacher_eval"] = evaluate(teacher, t_env, "teacher", prefix="eval_teacher")
             finally:
                 close_env(t_env)
-        if counters["initial_eval"] is None:
-            counters["initial_eval"] = evaluate(student_handle, eval_env, "student before training")
-        while counters["rounds"] < cfg.rounds:
+        if state["initial_eval"] is None:
+            state["initial_eval"] = evaluate(student_handle, eval_env, "student before training")
+        while state["rounds"] < cfg.rounds:
             rollout_metrics = {}
-            for i, (handle, n) in enumerate(zip(actors, _episode_shares(cfg, counters["rounds"]))):
+            for i, (handle, n) in enumerate(zip(actors, _episode_shares(cfg, state["rounds"]))):
                 if n == 0:
                     continue
                 res = run_episodes(roll_envs[i], handle.make_policy(), n, max_steps=horizon, deterministic=True,
                                    keep_episodes=True, desc=f"rollout ({handle.kind})",
-                                   seed=cfg.seed + 1000 * (counters["rounds"] + 1) + 100 * i)
+                                   seed=cfg.seed + 1000 * (state["rounds"] + 1) + 100 * i)
                 for ep in res.episodes:
                     buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action", "return_to_go")))
                 rollout_metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
             student.train()
             history = []
-            for _ in progress(range(cfg.updates_per_round), desc=f"round {counters['rounds'] + 1}"):
+            for _ in progress(range(cfg.updates_per_round), desc=f"round {state['rounds'] + 1}"):
                 history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
-            counters["rounds"] += 1
-            counters["updates"] += cfg.updates_per_round
-            run.log(counters["updates"], {**mean_metrics(history), **rollout_metrics, "round": counters["rounds"]})
+            state["rounds"] += 1
+            state["updates"] += cfg.updates_per_round
+            run.log(state["updates"], {**mean_metrics(history), **rollout_metrics, "round": state["rounds"]})
             key = "train/loss_distill" if cfg.distill else "train/loss_nll"
-            run.print(f"round {counters['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
+            run.print(f"round {state['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
                       + "".join(f", rollout ({k.split('/')[1].split('_')[0]}) {v:.3f}" for k, v in rollout_metrics.items()))
-            if counters["rounds"] % cfg.eval_every == 0 and counters["rounds"] < cfg.rounds:
-                evaluate(student_handle, eval_env, f"student after round {counters['rounds']}")
-            checkpoint()
-            if run.should_stop(counters["rounds"]) and counters["rounds"] < cfg.rounds:
-                run.print(f"stopping after round {counters['rounds']} (--stop-after); continue with --resume")
-                return counters
+            if state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.rounds:
+                evaluate(student_handle, eval_env, f"student after round {state['rounds']}")
+            state.save()
+            if run.should_stop(state["rounds"]) and state["rounds"] < cfg.rounds:
+                run.print(f"stopping after round {state['rounds']} (--stop-after); continue with --resume")
+                return dict(state)
         final = evaluate(student_handle, eval_env, "student after distillation")
     finally:
         close_env(eval_env)
         for env in roll_envs:
             close_env(env)
-    counters["final_eval"] = final
+    state["final_eval"] = final
     save_policy(run.dir / "policy.pt", kind="student", task=task, horizon=horizon, dt_config=dt_cfg, actor=student,
                 observation_key="state_estimate", target_return=teacher.target_return, rtg_scale=teacher.rtg_scale,
                 env_kwargs=teacher.env_kwargs, encoder_file=enc_file, normalizer=normalizer,
                 extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
                        "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
-    checkpoint()
+    state.save()
     run.finish()
-    run.print(f"eval normalized performance: teacher {counters['teacher_eval'] if counters['teacher_eval'] is not None else float('nan'):.3f}, "
-              f"student before {counters['initial_eval']:.3f}, after {final:.3f} ({cfg.eval_episodes} episodes)")
-    return counters
+    run.print(f"eval normalized performance: teacher {state['teacher_eval'] if state['teacher_eval'] is not None else float('nan'):.3f}, "
+              f"student before {state['initial_eval']:.3f}, after {final:.3f} ({cfg.eval_episodes} episodes)")
+    return dict(state)
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ __all__ = [
     "encoder_from_dict",
     "IMAGE_POLICY_KINDS",
     "save_image_policy",
+    "weight_copied_student",
 ]
 
 
@@ -203,6 +204,31 @@ class PolicyHandle:
         if self.normalizer is None and pre is None:
             return policy
         return NormalizedPolicy(policy, self.normalizer, self.observation_key, pre=pre)
+
+
+def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_copy: bool = True,
+                          normalizer_keys: tuple[str, ...] = ("state_estimate",), proprio_dims: tuple = (),
+                          device: str = "cpu") -> tuple[PolicyHandle, Any]:
+    """The TraKDis student of a loaded ``teacher`` and its :class:`~trakdis.modules.DTConfig`.
+
+    A DT of the teacher's sizes reading ``"state_estimate"`` (``encoder``'s estimate from the
+    image, run in the acting env), starting as a copy of the teacher's weights (``weight_copy``;
+    else fresh weights), acting with the teacher's return-to-go, env options and state statistics
+    (a normaliser of ``normalizer_keys``); ``proprio_dims``: dims of the estimate taken from the
+    true state when acting."""
+    from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
+
+    dt_cfg = DTConfig(**load_checkpoint(teacher.source)["dt_config"])
+    student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=device)
+    if weight_copy:
+        copy_teacher_weights(student, teacher.actor)
+    norm = teacher.normalizer
+    handle = PolicyHandle("student", teacher.task, teacher.horizon, actor=student, encoder=encoder,
+                          observation_key="state_estimate", target_return=teacher.target_return,
+                          rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
+                          normalizer=None if norm is None else StateNormalizer(norm.loc, norm.scale, keys=normalizer_keys),
+                          proprio_dims=tuple(proprio_dims))
+    return handle, dt_cfg
 
 
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
