@@ -26,9 +26,8 @@ from trakdis.envs.specs import TaskName
 from trakdis.modules import NormalizedEncoder
 from trakdis.optim import make_optimizer
 from trakdis.policies import save_encoder
-from trakdis.utils.checkpoint import rng_state, set_rng_state
 from trakdis.utils.progress import progress
-from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
@@ -128,15 +127,11 @@ def main(argv=None) -> dict:
     n_params = sum(p.numel() for p in encoder.parameters())
     run.print(f"encoder: {n_params / 1e6:.2f}M parameters, augmentation {'on' if cfg.aug else 'off'}")
 
-    epoch, best = 0, {"val_mae": float("inf"), "state_dict": None, "epoch": -1}
-    rounds_done, student_steps = 0, None
-    state = run.resume_state()
-    if state is not None:
-        encoder.load_state_dict(state["encoder"])
-        optim.load_state_dict(state["optim"])
-        epoch, best = state["epoch"], state["best"]
-        rounds_done, student_steps = state.get("rounds_done", 0), state.get("student_steps")
-        set_rng_state(state["rng"])
+    state = RunState(run, {"epoch": 0, "best": {"val_mae": float("inf"), "state_dict": None, "epoch": -1},
+                           "rounds_done": 0, "student_steps": None}, step_key="epoch", counters_key=None,
+                     encoder=encoder, optim=optim)
+    state.load()
+    state.restore_rng()
     teacher = _load_teacher(cfg, spec) if cfg.teacher and cfg.student_rounds > 0 else None
     total_epochs = cfg.epochs + (cfg.student_rounds * cfg.student_epochs if teacher is not None else 0)
 
@@ -152,21 +147,21 @@ def main(argv=None) -> dict:
         loss.train()
         return spec.state_error_cm(torch.cat(errs))
 
-    while epoch < total_epochs:
-        if teacher is not None and epoch == cfg.epochs + rounds_done * cfg.student_epochs:
+    while state["epoch"] < total_epochs:
+        if teacher is not None and state["epoch"] == cfg.epochs + state["rounds_done"] * cfg.student_epochs:
             # The images the weight-copied student sees: its error there is what the teacher's
             # weights must act on (docs/recipes/distill.md), and expert images never show them.
-            new, metrics = _student_rollouts(cfg, spec, teacher, encoder, seed=cfg.seed + 5000 + rounds_done)
-            student_steps = new if student_steps is None else torch.cat([student_steps, new])
-            rounds_done += 1
-            run.log(epoch, {f"student/{k}": v for k, v in metrics.items()})
-            run.print(f"student round {rounds_done}/{cfg.student_rounds}: normalized performance "
+            new, metrics = _student_rollouts(cfg, spec, teacher, encoder, seed=cfg.seed + 5000 + state["rounds_done"])
+            state["student_steps"] = new if state["student_steps"] is None else torch.cat([state["student_steps"], new])
+            state["rounds_done"] += 1
+            run.log(state["epoch"], {f"student/{k}": v for k, v in metrics.items()})
+            run.print(f"student round {state['rounds_done']}/{cfg.student_rounds}: normalized performance "
                       f"{metrics['normalized_performance']:.3f}, encoder error on its states: corners "
                       f"{metrics['corners_cm']:.2f} cm, pickers {metrics['pickers_cm']:.2f} cm; +{new.shape[0]} images")
-        epoch_train = train if student_steps is None else torch.cat([train, student_steps])
+        epoch_train = train if state["student_steps"] is None else torch.cat([train, state["student_steps"]])
         order = torch.randperm(epoch_train.shape[0])
         totals, n = {"loss_encoder": 0.0, "mae": 0.0}, 0
-        for i in progress(range(0, epoch_train.shape[0], cfg.batch_size), desc=f"epoch {epoch + 1}"):
+        for i in progress(range(0, epoch_train.shape[0], cfg.batch_size), desc=f"epoch {state['epoch'] + 1}"):
             batch = epoch_train[order[i : i + cfg.batch_size]].to(cfg.device)
             out = loss(batch)
             optim.zero_grad(set_to_none=True)
@@ -175,29 +170,28 @@ def main(argv=None) -> dict:
             for k in totals:
                 totals[k] += float(out[k].detach()) * batch.shape[0]
             n += batch.shape[0]
-        epoch += 1
+        state["epoch"] += 1
         val_err = validate()
         val_mae = val_err["mae"]
         # Model selection on the expert validation episodes during the first epochs; after student
         # rounds the newest encoder is kept (those rounds aim at other states than the validation's).
-        if val is None or val_mae < best["val_mae"] or epoch > cfg.epochs:
-            best = {"val_mae": val_mae, "state_dict": copy.deepcopy(encoder.state_dict()), "epoch": epoch,
-                    "val_error_cm": {k: v for k, v in val_err.items() if k != "mae"}}
-        run.log(epoch, {"train/loss_encoder": totals["loss_encoder"] / n, "train/mae": totals["mae"] / n,
-                        **{f"val/{k}": v for k, v in val_err.items()}})
+        if val is None or val_mae < state["best"]["val_mae"] or state["epoch"] > cfg.epochs:
+            state["best"] = {"val_mae": val_mae, "state_dict": copy.deepcopy(encoder.state_dict()),
+                             "epoch": state["epoch"], "val_error_cm": {k: v for k, v in val_err.items() if k != "mae"}}
+        run.log(state["epoch"], {"train/loss_encoder": totals["loss_encoder"] / n, "train/mae": totals["mae"] / n,
+                                 **{f"val/{k}": v for k, v in val_err.items()}})
         groups = ", ".join(f"{k.removesuffix('_cm')} {v:.2f} cm" for k, v in val_err.items() if k != "mae")
-        run.print(f"epoch {epoch}/{total_epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
+        run.print(f"epoch {state['epoch']}/{total_epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
                   f"train MAE {totals['mae'] / n:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f} ({groups})")
-        run.save_checkpoint({"encoder": encoder.state_dict(), "optim": optim.state_dict(), "epoch": epoch,
-                             "best": best, "rounds_done": rounds_done, "student_steps": student_steps,
-                             "rng": rng_state()}, step=epoch)
-        if run.should_stop(epoch) and epoch < total_epochs:
-            run.print(f"stopping after epoch {epoch} (--stop-after); continue with --resume")
-            return best
+        state.save()
+        if run.should_stop(state["epoch"]) and state["epoch"] < total_epochs:
+            run.print(f"stopping after epoch {state['epoch']} (--stop-after); continue with --resume")
+            return state["best"]
+    best = state["best"]
     encoder.load_state_dict(best["state_dict"])
     save_encoder(run.dir / "encoder.pt", encoder.cpu(), task=cfg.task,
                  extra={"val_mae": best["val_mae"], "val_error_cm": best.get("val_error_cm"), "epoch": best["epoch"],
-                        "aug": cfg.aug, "dataset": str(path), "student_rounds": rounds_done})
+                        "aug": cfg.aug, "dataset": str(path), "student_rounds": state["rounds_done"]})
     run.finish()
     run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
               f"(state units, mean over {spec.state_dim} dims)")
@@ -218,20 +212,11 @@ def _load_teacher(cfg: TrainEncoderConfig, spec):
 def _student_rollouts(cfg: TrainEncoderConfig, spec, teacher, encoder, *, seed: int):
     """``(steps, metrics)``: the pixels and true states of ``--student-episodes`` train-split episodes
     of the teacher's weights acting on ``encoder``'s estimates, and how they went."""
-    from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
-    from trakdis.utils.checkpoint import load_checkpoint
     from trakdis.evaluation import run_episodes
     from trakdis.envs import close_env
-    from trakdis.policies import PolicyHandle
-    from trakdis.transforms import StateNormalizer
+    from trakdis.policies import weight_copied_student
 
-    student = make_dt_actor(DTConfig(**load_checkpoint(teacher.source)["dt_config"]), observation_key="state_estimate")
-    copy_teacher_weights(student, teacher.actor)
-    norm = teacher.normalizer
-    handle = PolicyHandle("student", cfg.task, cfg.horizon, actor=student, encoder=copy.deepcopy(encoder).cpu().eval(),
-                          observation_key="state_estimate", target_return=teacher.target_return,
-                          rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
-                          normalizer=None if norm is None else StateNormalizer(norm.loc, norm.scale, keys=("state_estimate",)))
+    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
     env = handle.make_env(num_envs=2, split="train", image_size=cfg.image_size)
     try:
         res = run_episodes(env, handle.make_policy(), cfg.student_episodes, max_steps=cfg.horizon, keep_episodes=True,

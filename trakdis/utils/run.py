@@ -186,15 +186,21 @@ class RunState(dict):
         state.save()
 
     ``on_save`` (if set) is called first, to put derived values into the counters.
+    ``counters_key=None`` keeps the counters at the checkpoint's top level instead (a counter
+    missing from a checkpoint keeps its initial value).
     """
 
-    def __init__(self, run: Run, counters: Mapping[str, Any], *, step_key: str, **objects: Any):
+    def __init__(self, run: Run, counters: Mapping[str, Any], *, step_key: str, counters_key: str | None = "counters",
+                 **objects: Any):
         super().__init__(counters)
-        self.run, self.step_key, self.objects = run, step_key, objects
+        self.run, self.step_key, self.counters_key, self.objects = run, step_key, counters_key, objects
         self.on_save = None
         self.checkpoint = run.resume_state()
         if self.checkpoint is not None:
-            self.update(self.checkpoint["counters"])
+            if counters_key is None:
+                self.update({k: self.checkpoint[k] for k in counters if k in self.checkpoint})
+            else:
+                self.update(self.checkpoint[counters_key])
 
     @property
     def resuming(self) -> bool:
@@ -215,5 +221,6 @@ class RunState(dict):
     def save(self) -> Path:
         if self.on_save is not None:
             self.on_save()
-        return self.run.save_checkpoint({**{k: obj.state_dict() for k, obj in self.objects.items()},
-                                         "counters": dict(self), "rng": rng_state()}, step=self[self.step_key])
+        counters = dict(self) if self.counters_key is None else {self.counters_key: dict(self)}
+        return self.run.save_checkpoint({**{k: obj.state_dict() for k, obj in self.objects.items()}, **counters,
+                                         "rng": rng_state()}, step=self[self.step_key])
