@@ -49,3 +49,24 @@ def test_bad_state_noise_and_horizon_are_refused(tmp_path):
         with pytest.raises(ValueError, match="horizon must be >= 1"):
             load_policy(spec, task="ClothFold", horizon=0)
     assert load_policy(tmp_path).horizon == 10 and load_policy(tmp_path, horizon=3).horizon == 3
+
+
+def test_weight_copied_student_is_the_teachers_dt_on_the_estimate(tmp_path):
+    from trakdis.policies import weight_copied_student
+    from trakdis.transforms import StateNormalizer
+
+    cfg, actor = tiny_actor()
+    norm = StateNormalizer(torch.zeros(5), torch.full((5,), 2.0))
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFoldDiagonalPinned", horizon=10, dt_config=cfg,
+                actor=actor, observation_key="state", target_return=-0.5, rtg_scale=2.0, normalizer=norm)
+    teacher = load_policy(tmp_path)
+    encoder = torch.nn.Identity()
+    student, dt_cfg = weight_copied_student(teacher, encoder, normalizer_keys=("state", "state_estimate"))
+    assert dt_cfg == cfg and student.kind == "student" and student.encoder is encoder
+    assert student.observation_key == "state_estimate" and student.target_return == -0.5 and student.rtg_scale == 2.0
+    assert student.normalizer.keys == ("state", "state_estimate") and torch.equal(student.normalizer.scale, norm.scale)
+    for a, b in zip(teacher.actor.parameters(), student.actor.parameters()):
+        assert torch.equal(a, b)
+    fresh, _ = weight_copied_student(teacher, encoder, weight_copy=False, proprio_dims=(3, 4))
+    assert fresh.proprio_dims == (3, 4) and fresh.normalizer.keys == ("state_estimate",)
+    assert not all(torch.equal(a, b) for a, b in zip(teacher.actor.parameters(), fresh.actor.parameters()))

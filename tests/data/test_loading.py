@@ -75,3 +75,23 @@ def test_default_pixel_dataset_of_an_older_rendering_is_refused(tmp_path, found)
     _fake_dataset(path, EXPERT_VERSION, render_version=found)
     with pytest.raises(DatasetError, match="rendering version"):
         ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True)
+
+
+def test_ensure_dataset_timed_books_the_collected_episodes(tmp_path, monkeypatch):
+    from trakdis.data import DataConfig, ensure_dataset_timed, loading
+    from trakdis.utils.phases import PhaseTimer
+
+    def fake_ensure(cfg, *, task, horizon, pixels, **kwargs):  # "collects" by writing meta.json
+        path = loading.default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels)
+        path.mkdir(parents=True, exist_ok=True)
+        (path / "meta.json").write_text("{}")
+        return path
+
+    monkeypatch.setattr(loading, "ensure_dataset", fake_ensure)
+    cfg = DataConfig(root=str(tmp_path), episodes=3, num_envs=1)
+    phases, lines = PhaseTimer(), []
+    path = ensure_dataset_timed(cfg, phases=phases, task="ClothFold", horizon=5, seed=0, pixels=False, log=lines.append)
+    assert (path / "meta.json").exists() and phases.records["dataset collection"]["episodes"] == 3
+    assert len(lines) == 1 and lines[0].startswith("collected 3 episodes in")
+    ensure_dataset_timed(cfg, phases=phases, task="ClothFold", horizon=5, seed=0, pixels=False, log=lines.append)
+    assert phases.records["dataset collection"]["episodes"] == 3 and len(lines) == 1  # found: nothing collected

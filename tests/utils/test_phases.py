@@ -72,3 +72,19 @@ def test_excluded_background_child_is_booked_once_under_its_own_row():
     assert "(" in table.splitlines()[3] and "background" in table.splitlines()[-1]
     again = PhaseTimer(timer.state_dict())  # a resumed run keeps the row marked as background
     assert again.background == {"eval (background)"} and again.wall == pytest.approx(timer.wall)
+
+
+def test_report_prints_the_table_and_episodes_and_writes_json(tmp_path):
+    import json
+
+    timer = PhaseTimer()
+    timer.add("collection", episodes=4, wall=1.0, cpu=0.5)
+    timer.add("training", wall=2.0, cpu=2.0)
+    lines = []
+    timer.report(lines.append, tmp_path / "phases.json", total_wall=3.5, resumed=True, extra={"num_envs": 2})
+    assert lines[0].startswith("phases (resumed run: earlier parts included; wall and CPU seconds")
+    assert "collection" in lines[0] and "other" in lines[0]
+    assert lines[1] == "episodes simulated: 4 (collection 4)"
+    data = json.loads((tmp_path / "phases.json").read_text())
+    assert list(data)[:4] == ["phases", "episodes_simulated", "wall_seconds_this_process", "num_envs"]
+    assert data["episodes_simulated"] == 4 and data["wall_seconds_this_process"] == 3.5 and "loadavg" in data

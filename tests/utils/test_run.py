@@ -74,3 +74,29 @@ def test_resume_without_config_json_is_refused(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"--resume: .*a/config.json is missing"):
         train(["--root", root, "--resume", "--name", "a"])
     assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("counters_key", ["counters", None])
+def test_run_state_saves_and_resumes_counters_objects_and_rng(tmp_path, counters_key):
+    from trakdis.utils.run import RunState
+
+    argv = ["--root", str(tmp_path), "--name", "s", "--no-progress"]
+    run = Run.start("toy", Cfg, argv)
+    model = torch.nn.Linear(1, 1)
+    state = RunState(run, {"step": 0, "note": None}, step_key="step", counters_key=counters_key, model=model)
+    assert not state.resuming
+    state.load(), state.restore_rng()  # no-ops on a fresh run
+    state.on_save = lambda: state.update(note="saved")
+    state["step"] = 5
+    state.save()
+    expected = torch.rand(3)
+    saved = torch.load(run.checkpoint_path, weights_only=False)
+    assert saved["step"] == 5 and ("counters" in saved) == (counters_key is not None)
+    run = Run.start("toy", Cfg, [*argv, "--resume"])
+    other = torch.nn.Linear(1, 1)
+    state = RunState(run, {"step": 0, "note": None, "new": 1}, step_key="step", counters_key=counters_key, model=other)
+    assert state.resuming and state["step"] == 5 and state["note"] == "saved" and state["new"] == 1
+    state.load()
+    assert torch.equal(other.weight, model.weight)
+    state.restore_rng()
+    assert torch.equal(torch.rand(3), expected)

@@ -1,0 +1,74 @@
+"""A run's evaluation protocol: scores logged and printed, paired comparisons, the expert's baseline."""
+import numpy as np
+import pytest
+
+from trakdis.evaluation import BackgroundEvaluation, EvalProtocol, compare_scores, log_scores
+from trakdis.policies import load_policy
+from trakdis.utils.phases import PhaseTimer
+
+
+class FakeRun:
+    def __init__(self):
+        self.rows, self.lines = [], []
+
+    def log(self, step, metrics):
+        self.rows.append((step, dict(metrics)))
+
+    def print(self, *args):
+        self.lines.append(" ".join(map(str, args)))
+
+
+def test_log_scores_with_and_without_returns():
+    run = FakeRun()
+    m = log_scores(run, 3, "eval", "after", [0.5, 0.7], [-1.0, -2.0], detail="2 episodes in 1 s")
+    assert m == run.rows[0][1] and run.rows[0][0] == 3
+    assert list(m) == ["eval/normalized_performance", "eval/std", "eval/return"] and m["eval/return"] == -1.5
+    assert run.lines[0] == ("after: normalized performance 0.600 +- 0.100 (std; standard error 0.100; return -1.500, "
+                            "2 eval episodes); 2 episodes in 1 s")
+    m = log_scores(run, 4, "eval_teacher", "teacher", [0.5, 0.7], note="; x", extra={"eval_teacher/e": 1.0})
+    assert list(m) == ["eval_teacher/normalized_performance", "eval_teacher/std", "eval_teacher/e"]
+    assert run.lines[1] == "teacher: normalized performance 0.600 +- 0.100 (2 eval episodes; x)"
+
+
+def test_compare_scores_pairs_the_same_episodes():
+    line, numbers = compare_scores({"expert": 0.8, "offline": 0.5, "online": 0.6, "none": None},
+                                   {"offline": [0.4, 0.6], "online": np.array([0.6, 0.6])}, before="offline",
+                                   after="online")
+    assert numbers["gain"] == pytest.approx(0.1) and numbers["gain_se"] == pytest.approx(0.1)
+    assert line == ("expert 0.800, offline 0.500 +- 0.100, online 0.600 +- 0.000; online - offline +0.100 +- 0.100 "
+                    "(paired: the same 2 eval episodes)")
+    line, numbers = compare_scores({"online": 0.6}, {"offline": None, "online": [0.6, 0.6]}, before="offline",
+                                   after="online")
+    assert numbers["gain"] is None and numbers["offline_se"] is None and line == "online 0.600 +- 0.000"
+
+
+def test_run_and_the_experts_cached_baseline(tmp_path):
+    evals = EvalProtocol("ClothFoldDiagonalPinned", horizon=3, episodes=1, num_envs=1, seed=10_000)
+    expert = load_policy("expert", task=evals.task, horizon=evals.horizon)
+    env = expert.make_env(num_envs=1, split="eval")
+    try:
+        run = FakeRun()
+        res = evals.run(run, expert, env, step=7, tag="expert", prefix="x")
+        assert len(res.final_performance) == 1 and run.rows[0][0] == 7 and "x/return" in run.rows[0][1]
+        phases = PhaseTimer()
+        scores = evals.expert_baseline(run, env, phases, cache_root=tmp_path)
+        assert np.array_equal(scores, res.final_performance)  # the same configurations
+        assert phases.records["expert evaluation"]["episodes"] == 1 and "cached in" in run.lines[-1]
+        again = evals.expert_baseline(run, env, PhaseTimer(), cache_root=tmp_path)
+        assert np.array_equal(again, scores) and "measured once, cached in" in run.lines[-1]
+        assert run.rows[-1] == (0, run.rows[-2][1])  # logged under eval_expert/ at step 0 both times
+    finally:
+        env.close()
+
+
+def test_background_expert_baseline_is_booked_and_cached(tmp_path):
+    evals = EvalProtocol("ClothFoldDiagonalPinned", horizon=3, episodes=1, num_envs=1, seed=10_000)
+    run, phases = FakeRun(), PhaseTimer()
+    job = evals.expert_baseline(run, None, phases, cache_root=tmp_path, background=True)
+    assert isinstance(job, BackgroundEvaluation)
+    res = evals.finish_background(run, job, phases, "scripted expert", step=0, tag="scripted expert",
+                                  prefix="eval_expert")
+    assert "evaluation (scripted expert, background)" in phases.background and len(res.final_performance) == 1
+    assert "in a background process" in run.lines[-2] and "cached in" in run.lines[-1]
+    cached = evals.expert_baseline(run, None, PhaseTimer(), cache_root=tmp_path)
+    assert np.array_equal(cached, res.final_performance)

@@ -1,0 +1,47 @@
+"""The recipes' update loop: log, checkpoint and --stop-after cadence."""
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict
+
+from trakdis.optim import Updater
+from trakdis.training import train_updates
+from trakdis.utils.run import Run, RunConfig, RunState
+
+
+@dataclass
+class Cfg(RunConfig):
+    pass
+
+
+class Quadratic(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.ones(2))
+
+    def forward(self, td):
+        return TensorDict(loss_q=(self.w**2).sum())
+
+
+def loop(tmp_path, *argv, total=7):
+    run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "a", "--no-progress", *argv])
+    updater = Updater(Quadratic(), optimizer="adam", lr=1e-2)
+    state = RunState(run, {"updates": 0}, step_key="updates", updater=updater)
+    state.load()
+    logged, evaluated = [], []
+    done = train_updates(run, updater, TensorDict, state=state, total=total, log_every=3, checkpoint_every=2,
+                         log_extra={"phase": 0}, on_log=logged.append, on_update=evaluated.append)
+    return run, state, done, logged, evaluated
+
+
+def test_cadence_stop_and_resume(tmp_path):
+    run, state, done, logged, evaluated = loop(tmp_path)
+    assert done and state["updates"] == 7 and logged == [3, 6, 7] and evaluated == list(range(1, 8))
+    frame = run.logger.frame()
+    assert frame["step"].tolist() == [3, 6, 7] and (frame["phase"] == 0).all() and "train/loss_q" in frame
+    assert run.resume_state() is None
+    run, state, done, logged, _ = loop(tmp_path / "b", "--stop-after", "4")
+    assert not done and state["updates"] == 4 and logged == [3]
+    run, state, done, logged, _ = loop(tmp_path / "b", "--resume")
+    assert done and state.resuming and state["updates"] == 7 and logged == [6, 7]
+    assert state.objects["updater"].updates == 7
