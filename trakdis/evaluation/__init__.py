@@ -1,6 +1,7 @@
 """Evaluation: playing episodes of a policy in a batched env and summarising their scores
 (:mod:`.episodes`), the scripted expert's scores cached on disk (:mod:`.expert_scores`), and
-evaluations of a saved policy in a background process at low priority (:mod:`.background`)."""
+evaluations of a saved policy in a background process at low priority (:mod:`.background`), and a
+run's evaluation protocol: the same episodes every time, their scores logged (:mod:`.protocol`)."""
 from .background import BackgroundEvaluation
 from .episodes import (
     EpisodeResults,
