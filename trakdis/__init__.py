@@ -2,7 +2,8 @@
 
 Subpackages, lowest floor first: ``utils`` (generic helpers), ``envs`` (MuJoCo cloth tasks),
 ``modules`` (Decision Transformer, encoder), ``transforms``, ``objectives`` (losses), ``data``
-(episode layout, datasets, replay buffer), ``evaluation``, ``policies`` (saved policies), ``optim``.
+(episode layout, datasets, replay buffer), ``evaluation``, ``policies`` (saved policies), ``optim``,
+``training`` (the recipes' update loop).
 """
 
 import os as _os
