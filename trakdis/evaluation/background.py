@@ -61,6 +61,9 @@ def _worker(conn, spec: str, kwargs: dict[str, Any]) -> None:
         conn.close()
 
 
+# Not torchrl.collectors.Evaluator(backend="process") (TorchRL 0.14, collectors/_evaluator.py): it
+# hands back aggregated float metrics (``metrics_fn -> dict[str, float]``), not the per-episode
+# scores that the paired online gain and the expert-score cache need, and has no priority setting.
 class BackgroundEvaluation:
     """Play ``num_episodes`` evaluation episodes of a saved policy in a spawned process.
 
