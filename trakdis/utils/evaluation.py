@@ -234,6 +234,8 @@ def run_episodes(
             while len(finals) < num_episodes:
                 batch = next(it)
                 batch.names = None
+                # split_episodes, not split_trajs/trajs_per_batch: those also yield the episodes begun after an
+                # early end, and trajs_per_batch continues unfinished ones into the next batch (_single.py)
                 episodes = split_episodes(batch.exclude("collector"))
                 for ep in episodes:
                     if len(finals) >= num_episodes:
