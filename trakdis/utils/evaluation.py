@@ -134,6 +134,8 @@ def worker_env_fns(env) -> list[Callable[[], EnvBase]]:
     not started."""
     from torchrl.envs.batched_envs import BatchedEnvBase
 
+    # own code: TorchRL 0.14 has no helper for this; a batched env keeps one create_env_fn and
+    # create_env_kwargs per worker (torchrl/envs/batched_envs.py), which MultiSyncCollector takes as is
     if not isinstance(env, EnvBase) and isinstance(env, Sequence):
         return list(env)
     base, transform = env, None
