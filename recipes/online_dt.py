@@ -143,6 +143,11 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     parallel: bool = True
     """step them in worker processes (ParallelEnv), one core each; --no-parallel: in turn in this
     process (SerialEnv; the same episodes and numbers)"""
+    collector: Literal["sync", "multi_sync"] = "sync"
+    """how evaluations and online rollouts step their --num-envs envs: one TorchRL Collector here
+    (the envs in ParallelEnv workers, or in turn with --no-parallel), or a MultiSyncCollector of
+    --num-envs processes, each with its own env and copy of the policy, started for every batch of
+    episodes (the same configurations; docs/scaling.md)"""
     log_every: int = 50
     """log training metrics every N updates"""
     checkpoint_every: int = 500
@@ -170,7 +175,7 @@ def evaluate(run: Run, handle: PolicyHandle, env, cfg: OnlineDTConfig, step: int
     # Every evaluation replays the same eval-split configurations (same seed): scores are comparable,
     # and the online gain is a paired difference.
     res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.eval_episodes, max_steps=cfg.horizon,
-                       desc=f"eval ({tag})", seed=cfg.seed + 10_000)
+                       desc=f"eval ({tag})", seed=cfg.seed + 10_000, collector=cfg.collector)
     if actor is not None:
         actor.train(was_training)
     log_scores(run, step, "eval" if handle.kind != "expert" else "eval_expert", tag, res.final_performance,
@@ -344,7 +349,9 @@ def main(argv=None) -> dict:
         history = []
         bar = progress(total=cfg.offline_updates, initial=min(counters["updates"], cfg.offline_updates), desc="offline")
         # the env workers start (spawn, imports) on the core that training leaves idle
-        starting = start_in_background(eval_env, *([explore_env] if explore_env is not None else []))
+        # (with --collector multi_sync these envs only describe the processes' envs: never started)
+        starting = start_in_background(*([eval_env, *([explore_env] if explore_env is not None else [])]
+                                         if cfg.collector == "sync" else []))
         with phases.phase("offline training"):
             while counters["updates"] < cfg.offline_updates:
                 if run.should_stop(counters["updates"]):
@@ -389,7 +396,7 @@ def main(argv=None) -> dict:
                         res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
                                            max_steps=cfg.horizon, deterministic=cfg.exploration == "mean",
                                            keep_episodes=True, desc="rollout",
-                                           seed=cfg.seed + 1000 * (counters["rounds"] + 1))
+                                           seed=cfg.seed + 1000 * (counters["rounds"] + 1), collector=cfg.collector)
                     actor.train()
                     kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
                                for ep in (res.episodes if not cfg.offline_control else ()))

@@ -3,6 +3,7 @@
 evaluations of a saved policy in a background process at low priority (:mod:`.background`)."""
 from .background import BackgroundEvaluation
 from .episodes import (
+    COLLECTORS,
     EpisodeResults,
     episode_frames,
     markdown_table,
@@ -11,6 +12,7 @@ from .episodes import (
     split_episodes,
     standard_error,
     summarize,
+    worker_env_fns,
     write_summary_table,
 )
 from .expert_scores import (
@@ -22,6 +24,8 @@ from .expert_scores import (
 )
 
 __all__ = [
+    "COLLECTORS",
+    "worker_env_fns",
     "BackgroundEvaluation",
     "EpisodeResults",
     "episode_frames",
