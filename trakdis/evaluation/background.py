@@ -89,6 +89,8 @@ class BackgroundEvaluation:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.spec = str(spec)
+        if self.spec != "expert" and not Path(spec).exists():
+            raise FileNotFoundError(f"background evaluation: no policy file {self.spec}")
         kwargs = dict(task=task, horizon=horizon, num_episodes=int(num_episodes), num_envs=int(num_envs),
                       env_seed=env_seed, policy_seed=policy_seed, split=split, nice=int(nice))
         ctx = mp.get_context("spawn")
