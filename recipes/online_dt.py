@@ -139,6 +139,11 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     parallel: bool = True
     """step them in worker processes (ParallelEnv), one core each; --no-parallel: in turn in this
     process (SerialEnv; the same episodes and numbers)"""
+    collector: Literal["sync", "multi_sync"] = "sync"
+    """how evaluations and online rollouts step their --num-envs envs: one TorchRL Collector here
+    (the envs in ParallelEnv workers, or in turn with --no-parallel), or a MultiSyncCollector of
+    --num-envs processes, each with its own env and copy of the policy, started for every batch of
+    episodes (the same configurations; docs/scaling.md)"""
     log_every: int = 50
     """log training metrics every N updates"""
     checkpoint_every: int = 500
@@ -207,7 +212,8 @@ def main(argv=None) -> dict:
     policy_file = lambda path: save_policy(path, kind="teacher", task=cfg.task, horizon=cfg.horizon, dt_config=dt_cfg,  # noqa: E731
                                            actor=actor, observation_key="state", target_return=eval_rtg,
                                            rtg_scale=cfg.rtg_scale, normalizer=normalizer)
-    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, policy_seed=cfg.seed)
+    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, policy_seed=cfg.seed,
+                         collector=cfg.collector)
     eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
     explore_env = None if state["rounds"] >= cfg.online_rounds else handle.make_env(
         num_envs=cfg.num_envs, split="train", parallel=cfg.parallel, target_return=explore_rtg)
@@ -220,7 +226,9 @@ def main(argv=None) -> dict:
             expert_job = expert if isinstance(expert, BackgroundEvaluation) else None
             state["expert_eval"] = None if expert_job else float(np.mean(expert))
         # 3. offline pretraining; the env workers start (spawn, imports) on the core that training leaves idle
-        starting = start_in_background(eval_env, *([explore_env] if explore_env is not None else []))
+        # (with --collector multi_sync these envs only describe the processes' envs: never started)
+        starting = start_in_background(*([eval_env, *([explore_env] if explore_env is not None else [])]
+                                         if cfg.collector == "sync" else []))
         with phases.phase("offline training"):
             if not train_updates(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
                                  total=cfg.offline_updates, log_every=cfg.log_every, desc="offline",
@@ -251,7 +259,8 @@ def main(argv=None) -> dict:
                     with phases.phase("online rollouts", episodes=cfg.episodes_per_round, workers=cfg.num_envs):
                         res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
                                            max_steps=cfg.horizon, deterministic=cfg.exploration == "mean",
-                                           keep_episodes=True, desc="rollout", seed=cfg.seed + 1000 * (state["rounds"] + 1))
+                                           keep_episodes=True, desc="rollout", seed=cfg.seed + 1000 * (state["rounds"] + 1),
+                                           collector=cfg.collector)
                     actor.train()
                     kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
                                for ep in (res.episodes if not cfg.offline_control else ()))

@@ -11,7 +11,8 @@ def test_background_expert_matches_in_process_parallel_evaluation():
     job = BackgroundEvaluation("expert", task="ClothFold", horizon=3, num_episodes=3, num_envs=2, env_seed=5,
                                policy_seed=0, nice=0)
     handle = load_policy("expert", task="ClothFold", horizon=3)
-    env = handle.make_env(num_envs=2, split="eval", parallel=True)  # what online_dt.py evaluates with
+    env = handle.make_env(num_envs=2, split="eval")  # SerialEnv: the episodes of online_dt.py's ParallelEnv
+    # (test_episodes.py::test_parallel_workers_play_the_same_episodes_as_serial_envs)
     try:
         here = run_episodes(env, handle.make_policy(seed=0), 3, max_steps=3, desc=None, seed=5)
     finally:
@@ -25,7 +26,10 @@ def test_background_expert_matches_in_process_parallel_evaluation():
 
 def test_background_error_names_the_file(tmp_path):
     missing = tmp_path / "no_such_policy.pt"
-    job = BackgroundEvaluation(missing, task="ClothFold", horizon=3, num_episodes=1)
+    with pytest.raises(FileNotFoundError, match="no_such_policy.pt"):
+        BackgroundEvaluation(missing, task="ClothFold", horizon=3, num_episodes=1)
+    missing.write_bytes(b"not a policy file")  # fails in the worker: its error comes back
+    job = BackgroundEvaluation(missing, task="ClothFold", horizon=3, num_episodes=1, nice=0)
     with pytest.raises(RuntimeError, match="no_such_policy.pt"):
         job.result()
 

@@ -4,6 +4,7 @@ evaluations of a saved policy in a background process at low priority (:mod:`.ba
 run's evaluation protocol: the same episodes every time, their scores logged (:mod:`.protocol`)."""
 from .background import BackgroundEvaluation
 from .episodes import (
+    COLLECTORS,
     EpisodeResults,
     episode_frames,
     markdown_table,
@@ -12,6 +13,7 @@ from .episodes import (
     split_episodes,
     standard_error,
     summarize,
+    worker_env_fns,
     write_summary_table,
 )
 from .protocol import EvalProtocol, compare_scores, log_scores
@@ -24,6 +26,8 @@ from .expert_scores import (
 )
 
 __all__ = [
+    "COLLECTORS",
+    "worker_env_fns",
     "BackgroundEvaluation",
     "EvalProtocol",
     "compare_scores",

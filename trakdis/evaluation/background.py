@@ -61,6 +61,9 @@ def _worker(conn, spec: str, kwargs: dict[str, Any]) -> None:
         conn.close()
 
 
+# Not torchrl.collectors.Evaluator(backend="process") (TorchRL 0.14, collectors/_evaluator.py): it
+# hands back aggregated float metrics (``metrics_fn -> dict[str, float]``), not the per-episode
+# scores that the paired online gain and the expert-score cache need, and has no priority setting.
 class BackgroundEvaluation:
     """Play ``num_episodes`` evaluation episodes of a saved policy in a spawned process.
 
@@ -86,6 +89,8 @@ class BackgroundEvaluation:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.spec = str(spec)
+        if self.spec != "expert" and not Path(spec).exists():
+            raise FileNotFoundError(f"background evaluation: no policy file {self.spec}")
         kwargs = dict(task=task, horizon=horizon, num_episodes=int(num_episodes), num_envs=int(num_envs),
                       env_seed=env_seed, policy_seed=policy_seed, split=split, nice=int(nice))
         ctx = mp.get_context("spawn")

@@ -1,16 +1,20 @@
 """Episode rollouts and their summary, shared by the recipes (teacher/student evaluation, online
 data collection, ``evaluate.py``).
 
-:func:`run_episodes` rolls a policy out in a batched TorchRL environment (``SerialEnv`` /
-``ParallelEnv`` of ``N`` tasks, or a single env) with ``env.rollout`` until ``num_episodes``
-full episodes were played, and returns per-episode results: the normalized performance at the
-episode's end (the paper's metric), the return, the length, and optionally the rollout
-TensorDicts themselves (to insert into a replay buffer or to render videos).
+:func:`run_episodes` rolls a policy out with a TorchRL collector (a ``Collector`` over a batched
+environment, ``SerialEnv`` / ``ParallelEnv`` of ``N`` tasks or a single env, or a
+``MultiSyncCollector`` of ``N`` processes) until ``num_episodes`` full episodes were played, and
+returns per-episode results: the normalized performance at the episode's end (the paper's
+metric), the return, the length, and optionally the rollout TensorDicts themselves (to insert
+into a replay buffer or to render videos).
 """
 from __future__ import annotations
 
+import functools
 import math
+import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -19,13 +23,14 @@ import numpy as np
 import pandas as pd
 import torch
 from tensordict import TensorDictBase
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.progress import progress
 
-__all__ = ["EpisodeResults", "episode_frames", "markdown_table", "paired_difference", "run_episodes", "split_episodes",
-           "standard_error", "summarize", "write_summary_table"]
+__all__ = ["COLLECTORS", "EpisodeResults", "episode_frames", "markdown_table", "paired_difference", "run_episodes",
+           "split_episodes", "standard_error", "summarize", "worker_env_fns", "write_summary_table"]
 
 
 @dataclass
@@ -112,6 +117,49 @@ def split_episodes(rollout: TensorDictBase) -> list[TensorDictBase]:
     return [flat[i, : int(ends[i]) + 1] for i in range(flat.shape[0])]
 
 
+COLLECTORS = ("sync", "multi_sync")
+"""How :func:`run_episodes` steps its environments (see its ``collector`` argument)."""
+
+
+def _build_worker_env(create_env_fn, create_env_kwargs, transform):
+    env = create_env_fn(**create_env_kwargs)
+    # auto_unwrap=False: the transforms stay on top of the sub-env's own, as on top of the batched env
+    return env if transform is None else TransformedEnv(env, transform, auto_unwrap=False)
+
+
+def worker_env_fns(env) -> list[Callable[[], EnvBase]]:
+    """One constructor per sub-environment of a batched ``env`` (``SerialEnv``/``ParallelEnv``,
+    optionally inside a ``TransformedEnv``): each builds that sub-environment with a copy of
+    ``env``'s transforms on top. A sequence of constructors is returned as a list. ``env`` itself is
+    not started."""
+    from torchrl.envs.batched_envs import BatchedEnvBase
+
+    # own code: TorchRL 0.14 has no helper for this; a batched env keeps one create_env_fn and
+    # create_env_kwargs per worker (torchrl/envs/batched_envs.py), which MultiSyncCollector takes as is
+    if not isinstance(env, EnvBase) and isinstance(env, Sequence):
+        return list(env)
+    base, transform = env, None
+    if isinstance(env, TransformedEnv):
+        base, transform = env.base_env, env.transform
+    if not isinstance(base, BatchedEnvBase):
+        raise TypeError(f"worker_env_fns: expected a SerialEnv/ParallelEnv (optionally in a TransformedEnv) or a "
+                        f"sequence of env constructors, got {type(base).__name__}")
+    return [functools.partial(_build_worker_env, base.create_env_fn[i], base.create_env_kwargs[i],
+                              None if transform is None else transform.clone()) for i in range(base.num_workers)]
+
+
+def _shutdown(collector, **kwargs) -> None:
+    """``collector.shutdown(**kwargs)``; a failure while another exception propagates is only warned about."""
+    in_flight = sys.exc_info()[1]
+    try:
+        collector.shutdown(**kwargs)
+    except Exception as err:
+        if in_flight is None:
+            raise
+        warnings.warn(f"run_episodes: shutting the collector down failed ({type(err).__name__}: {err}) while "
+                      f"{type(in_flight).__name__} was being raised; raising that one", RuntimeWarning, stacklevel=2)
+
+
 def run_episodes(
     env,
     policy: Callable[[TensorDictBase], TensorDictBase],
@@ -123,48 +171,103 @@ def run_episodes(
     desc: str | None = "episodes",
     on_episode: Callable[[TensorDictBase], Any] | None = None,
     seed: int | None = None,
+    collector: str = "sync",
 ) -> EpisodeResults:
-    """Play ``num_episodes`` episodes of ``policy`` in ``env`` (batched over ``env.batch_size``).
+    """Play ``num_episodes`` episodes of ``policy`` (a TensorDict module) on ``N`` environments with
+    a TorchRL collector, ``max_steps`` steps per episode.
 
-    Each round is one ``env.rollout`` of ``max_steps`` steps (the horizon) with a fresh reset, so
-    a stateful policy (the DT acting wrapper) sees ``step_count == 0`` at every episode start.
-    ``deterministic`` evaluates the distribution's mean (``ExplorationType.DETERMINISTIC``);
-    otherwise actions are sampled. ``on_episode`` is called with each finished episode.
-    ``seed`` reseeds the env first, so that calls with the same seed play the same initial
-    configurations (common random numbers for comparing policies; exact resumption).
+    ``collector``:
+
+    * ``"sync"``: a ``torchrl.collectors.Collector`` over ``env`` in this process (``N`` =
+      ``env.batch_size``: a ``SerialEnv``/``ParallelEnv`` or a single env); the policy acts for the
+      whole batch here. ``env`` stays open.
+    * ``"multi_sync"``: a ``torchrl.collectors.MultiSyncCollector`` of ``N`` processes, each with
+      its own environment and its own copy of the policy. ``env`` is a batched env whose
+      sub-environments (and transforms) the processes build (:func:`worker_env_fns`; ``env``
+      itself is never started), or a sequence of env constructors. The processes are started for
+      this call and shut down before it returns.
+
+    Each collector batch holds ``N * max_steps`` frames: one episode per environment, from its
+    start (a reset) to its first ``("next", "done")`` (:func:`split_episodes`; the steps after an
+    early end are dropped). An environment that did not end by the batch's last step is reset before
+    the next batch; one that ended there was already reset by the collector. A stateful policy (the
+    DT acting wrapper) therefore sees ``step_count == 0`` at every episode start.
+
+    ``deterministic``: ``ExplorationType.DETERMINISTIC`` (the distribution's mean), otherwise
+    ``RANDOM`` (sampled actions). ``on_episode`` is called with each finished episode.
+    ``seed`` seeds the environments first (``env.set_seed`` / ``collector.set_seed``: env ``i``
+    gets the ``i``-th seed of TorchRL's chain in both cases), so that calls with the same seed play
+    the same initial configurations, with either collector (common random numbers for comparing
+    policies; exact resumption). Sampled actions and a policy's own noise are drawn per process
+    with ``"multi_sync"``, so only deterministic policies give the same episodes there.
     """
+    from torchrl.collectors import Collector, MultiSyncCollector
+
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
-    n_env = int(np.prod(tuple(env.batch_size))) if len(env.batch_size) else 1
-    rounds = math.ceil(num_episodes / n_env)
-    finals, returns, lengths, unstable, kept = [], [], [], [], []
-    t0 = time.perf_counter()
+    if collector not in COLLECTORS:
+        raise ValueError(f"collector must be one of {COLLECTORS}, got {collector!r}")
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    if seed is not None:
-        env.set_seed(seed)
+    finals, returns, lengths, unstable, kept = [], [], [], [], []
+    threads = torch.get_num_threads()
+    t0 = time.perf_counter()
+    if collector == "sync":
+        n_env = int(np.prod(tuple(env.batch_size))) if len(env.batch_size) else 1
+        if seed is not None:
+            # before the Collector: its constructor resets env, and that reset starts the first episodes
+            env.set_seed(seed)
+        # use_buffers=False: the batch is stacked from the steps as env.rollout does (keys the policy
+        # writes beyond the env's specs, e.g. a TanhNormal's loc/scale, kept)
+        coll = Collector(env, policy, frames_per_batch=n_env * max_steps, total_frames=-1, exploration_type=mode,
+                         use_buffers=False, auto_register_policy_transforms=False)
+    else:
+        env_fns = worker_env_fns(env)
+        n_env = len(env_fns)
+        # num_threads: TorchRL would otherwise lower this process's thread count by the number of workers
+        coll = MultiSyncCollector(env_fns, policy, frames_per_batch=n_env * max_steps, total_frames=-1,
+                                  exploration_type=mode, use_buffers=False, cat_results="stack", num_threads=threads,
+                                  auto_register_policy_transforms=False)
     bar = progress(total=num_episodes, desc=desc)
-    with torch.no_grad(), set_exploration_type(mode):
-        for _ in range(rounds):
-            rollout = env.rollout(max_steps, policy, break_when_any_done=False, auto_reset=True)
-            for ep in split_episodes(rollout):
-                if len(finals) >= num_episodes:
-                    break
-                nxt = ep.get("next")
-                if "normalized_performance" not in nxt.keys():
-                    raise KeyError(
-                        "run_episodes: the environment writes no ('next', 'normalized_performance'); "
-                        f"next keys are {sorted(map(str, nxt.keys()))}"
-                    )
-                finals.append(float(nxt.get("normalized_performance")[-1].reshape(-1)[0]))
-                returns.append(float(nxt.get("reward").sum()))
-                lengths.append(ep.shape[0])
-                unstable.append(bool(nxt.get("sim_unstable").any()) if "sim_unstable" in nxt.keys() else False)
-                if keep_episodes:
-                    kept.append(ep)
-                if on_episode is not None:
-                    on_episode(ep)
-                bar.update(1)
-    bar.close()
+    try:
+        if seed is not None and collector == "multi_sync":
+            coll.set_seed(seed)  # seeds each process's env in turn (TorchRL's seed chain), then resets them
+        it = iter(coll)
+        with torch.no_grad(), set_exploration_type(mode):
+            while len(finals) < num_episodes:
+                batch = next(it)
+                batch.names = None
+                # split_episodes, not split_trajs/trajs_per_batch: those also yield the episodes begun after an
+                # early end, and trajs_per_batch continues unfinished ones into the next batch (_single.py)
+                episodes = split_episodes(batch.exclude("collector"))
+                for ep in episodes:
+                    if len(finals) >= num_episodes:
+                        break
+                    nxt = ep.get("next")
+                    if "normalized_performance" not in nxt.keys():
+                        raise KeyError(
+                            "run_episodes: the environment writes no ('next', 'normalized_performance'); "
+                            f"next keys are {sorted(map(str, nxt.keys()))}"
+                        )
+                    finals.append(float(nxt.get("normalized_performance")[-1].reshape(-1)[0]))
+                    returns.append(float(nxt.get("reward").sum()))
+                    lengths.append(ep.shape[0])
+                    unstable.append(bool(nxt.get("sim_unstable").any()) if "sim_unstable" in nxt.keys() else False)
+                    if keep_episodes:
+                        kept.append(ep)
+                    if on_episode is not None:
+                        on_episode(ep)
+                    bar.update(1)
+                if len(finals) < num_episodes:
+                    _start_next_episodes(coll, batch, n_env, collector, env)
+    finally:
+        bar.close()
+        try:
+            if collector == "sync":
+                _shutdown(coll, close_env=False)  # env belongs to the caller (close_env)
+            else:
+                _shutdown(coll)  # its processes and their envs
+        finally:
+            torch.set_num_threads(threads)  # TorchRL's shutdown raises the thread count (see close_env)
     return EpisodeResults(
         final_performance=np.asarray(finals),
         returns=np.asarray(returns),
@@ -174,6 +277,23 @@ def run_episodes(
         seconds=time.perf_counter() - t0,
         num_envs=n_env,
     )
+
+
+def _start_next_episodes(coll, batch: TensorDictBase, n_env: int, collector: str, env) -> None:
+    """Reset the environments whose episode did not end at ``batch``'s last step (the collector
+    already reset those that ended there), so that every environment starts a new episode."""
+    # own code, not reset_at_each_iter=True: that resets every env again, also those the collector's
+    # step_and_maybe_reset has just reset (torchrl/collectors/_single.py), drawing one more initial
+    # configuration per env and batch than env.rollout(auto_reset=True), whose last step does not reset
+    done = batch.get(("next", "done"))[..., -1, :].reshape(n_env)
+    if bool(done.all()):
+        return
+    if collector == "multi_sync":  # one env per process
+        coll.reset(reset_idx=(~done).tolist())
+    elif len(env.batch_size):
+        coll.reset(index=(~done).reshape(env.batch_size))
+    else:
+        coll.reset()
 
 
 def write_summary_table(

@@ -86,6 +86,8 @@ class EvalProtocol:
     policy_seed: int | None = None
     log_returns: bool = True
     """log and print the mean return beside the scores (:func:`log_scores` with ``returns``)"""
+    collector: str = "sync"
+    """how :func:`~trakdis.evaluation.run_episodes` steps the envs (``"sync"`` or ``"multi_sync"``)"""
 
     def run(self, run: Any, handle: Any, env: Any, *, step: int, tag: str, prefix: str = "eval",
             keep_mode: nn.Module | None = None, state_error_cm: Callable[[Any], dict] | None = None,
@@ -99,7 +101,8 @@ class EvalProtocol:
         was_training = keep_mode.training if keep_mode is not None else False
         errors = state_error_cm is not None and handle.uses_pixels
         res = run_episodes(env, handle.make_policy(seed=self.policy_seed), self.episodes, max_steps=self.horizon,
-                           desc=desc if desc is not None else f"eval ({tag})", seed=self.seed, keep_episodes=errors)
+                           desc=desc if desc is not None else f"eval ({tag})", seed=self.seed, keep_episodes=errors,
+                           collector=self.collector)
         if keep_mode is not None:
             keep_mode.train(was_training)
         extra, note = {}, ""

@@ -1,0 +1,216 @@
+"""run_episodes on TorchRL collectors plays the episodes that env.rollout played: the same initial
+configurations (seeded), the same resets of a stateful policy, the same first-done cut; a
+MultiSyncCollector of one process per env plays them too, and leaves no process behind."""
+import functools
+import multiprocessing
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import EnvBase, SerialEnv, StepCounter, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from trakdis.evaluation import run_episodes, split_episodes, worker_env_fns
+
+
+class Drift(EnvBase):
+    """1-d drift from a random start: state0 ~ U(-1, 1) drawn from the env's seeded generator at each
+    reset, state += action, normalized_performance = state; ``unstable_at``: the episode ends early."""
+
+    def __init__(self, unstable_at=None):
+        super().__init__(batch_size=())
+        self.unstable_at = unstable_at
+        self.rng = torch.Generator().manual_seed(12345)
+        self.observation_spec = Composite(
+            state=Unbounded(shape=(1,)), normalized_performance=Unbounded(shape=(1,)),
+            sim_unstable=Unbounded(shape=(1,), dtype=torch.bool),
+        )
+        self.action_spec = Bounded(-1, 1, shape=(1,))
+        self.reward_spec = Unbounded(shape=(1,))
+
+    def _reset(self, td):
+        self._t = 0
+        s = torch.rand(1, generator=self.rng) * 2 - 1
+        return TensorDict(state=s, normalized_performance=s.clone(), sim_unstable=torch.zeros(1, dtype=torch.bool),
+                          done=torch.zeros(1, dtype=torch.bool), terminated=torch.zeros(1, dtype=torch.bool))
+
+    def _step(self, td):
+        self._t += 1
+        s = td["state"] + td["action"]
+        bad = self.unstable_at is not None and self._t >= self.unstable_at
+        return TensorDict(state=s, normalized_performance=s.clone(), reward=-s.abs(),
+                          sim_unstable=torch.tensor([bad]), done=torch.tensor([bad]), terminated=torch.zeros(1, dtype=torch.bool))
+
+    def _set_seed(self, seed):
+        self.rng.manual_seed(int(seed))
+
+
+def make(h=5, unstable_at=None):
+    return TransformedEnv(Drift(unstable_at), StepCounter(max_steps=h))
+
+
+class Counting(TensorDictModuleBase):
+    """A stateful policy: a per-env counter cleared where ``step_count == 0`` (as the DT acting
+    wrapper clears its context) enters the action, so a missed or extra reset changes the episode."""
+
+    in_keys = ["state", "step_count"]
+    out_keys = ["action"]
+
+    def __init__(self):
+        super().__init__()
+        self.count = None
+
+    def forward(self, td):
+        sc = td["step_count"]
+        if self.count is None or self.count.shape != sc.shape:
+            self.count = torch.zeros(sc.shape)
+        self.count = torch.where(sc == 0, torch.zeros_like(self.count), self.count + 1)
+        td["action"] = (-0.3 * td["state"] + 0.05 * self.count).clamp(-1, 1)
+        return td
+
+
+def rollout_reference(env, policy, num_episodes, max_steps, seed, deterministic=True):
+    """run_episodes before the collectors: env.rollout rounds with a fresh reset, first-done cut."""
+    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    env.set_seed(seed)
+    episodes = []
+    with torch.no_grad(), set_exploration_type(mode):
+        while len(episodes) < num_episodes:
+            episodes += split_episodes(env.rollout(max_steps, policy, break_when_any_done=False, auto_reset=True))
+    return episodes[:num_episodes]
+
+
+def assert_same_episodes(reference, res, keys=("state", "action", ("next", "reward")), exact=True):
+    assert len(res.episodes) == len(reference)
+    assert res.lengths.tolist() == [ep.shape[0] for ep in reference]
+    finals = [float(ep["next", "normalized_performance"][-1].reshape(-1)[0]) for ep in reference]
+    returns = [float(ep["next", "reward"].sum()) for ep in reference]
+    tol = {"rtol": 0, "atol": 0} if exact else {"rtol": 1e-4, "atol": 1e-5}
+    np.testing.assert_allclose(res.final_performance, finals, **tol)
+    np.testing.assert_allclose(res.returns, returns, **tol)
+    for ref, ep in zip(reference, res.episodes):
+        for key in keys:
+            torch.testing.assert_close(ep[key], ref[key], **tol)
+
+
+CASES = {  # name: (env factory, episodes, max_steps)
+    "horizon_steps": (lambda: SerialEnv(2, functools.partial(make, 5)), 5, 5),  # 3 batches, the last one half used
+    "shorter_than_horizon": (lambda: SerialEnv(2, functools.partial(make, 10)), 4, 4),  # no env done: all reset
+    "mixed_ends": (lambda: SerialEnv(2, [functools.partial(make, 4), functools.partial(make, 10)]), 6, 4),
+    "early_end": (lambda: SerialEnv(2, functools.partial(make, 10, unstable_at=3)), 4, 10),
+    "single_env": (lambda: make(5), 3, 5),
+    "single_env_shorter": (lambda: make(10), 3, 4),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_collector_plays_the_episodes_of_env_rollout(case):
+    factory, n, steps = CASES[case]
+    reference = rollout_reference(factory(), Counting(), n, steps, seed=7)
+    env = factory()
+    res = run_episodes(env, Counting(), n, max_steps=steps, keep_episodes=True, desc=None, seed=7)
+    assert_same_episodes(reference, res)
+    assert "collector" not in res.episodes[0].keys()
+    # the same seed again on the same env: the same configurations; another seed: others
+    again = run_episodes(env, Counting(), n, max_steps=steps, desc=None, seed=7)
+    np.testing.assert_array_equal(again.final_performance, res.final_performance)
+    other = run_episodes(env, Counting(), n, max_steps=steps, desc=None, seed=8)
+    assert not np.array_equal(other.final_performance, res.final_performance)
+
+
+def test_collector_leaves_the_env_open_and_the_thread_count():
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        env = SerialEnv(2, functools.partial(make, 5))
+        run_episodes(env, Counting(), 2, max_steps=5, desc=None, seed=0)
+        assert not env.is_closed and torch.get_num_threads() == 1
+        env.rollout(2, Counting())  # still usable
+        env.close()
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_unknown_collector_is_refused():
+    with pytest.raises(ValueError, match="collector must be one of"):
+        run_episodes(make(3), Counting(), 1, max_steps=3, desc=None, collector="ray")
+
+
+def test_worker_env_fns_rebuild_the_sub_envs_with_the_transforms():
+    from trakdis.transforms import ReturnToGo
+
+    batched = TransformedEnv(SerialEnv(2, [functools.partial(make, 4), functools.partial(make, 6)]), ReturnToGo(-2.0))
+    fns = worker_env_fns(batched)
+    assert len(fns) == 2 and batched.is_closed  # never started
+    env = fns[1]()
+    assert env.batch_size == () and "return_to_go" in env.observation_spec.keys()
+    assert env.rollout(10, Counting(), break_when_any_done=True).shape == (6,)
+    assert worker_env_fns([make, make]) == [make, make]
+    with pytest.raises(TypeError, match="SerialEnv/ParallelEnv"):
+        worker_env_fns(make(3))
+
+
+def _tiny_teacher(horizon):
+    from trakdis.envs import task_spec
+    from trakdis.modules import make_dt_actor
+    from trakdis.modules import DTConfig
+    from trakdis.policies import PolicyHandle
+    from trakdis.transforms import StateNormalizer
+
+    torch.manual_seed(0)
+    spec = task_spec("ClothFold", horizon=horizon)
+    dt_cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=3).for_task(spec.state_dim, spec.action_dim, horizon)
+    actor = make_dt_actor(dt_cfg, observation_key="state")
+    normalizer = StateNormalizer(torch.zeros(spec.state_dim), torch.full((spec.state_dim,), 0.1))
+    return PolicyHandle("teacher", "ClothFold", horizon, actor=actor.eval(), observation_key="state", target_return=-1.0,
+                        normalizer=normalizer)
+
+
+@pytest.mark.parametrize("kind", ["expert", "teacher"])
+def test_collector_plays_the_episodes_of_env_rollout_on_clothfold(kind):
+    """A real task: the scripted expert and a (random) DT teacher with its acting wrapper, 2 envs,
+    2 batches (the second started by the collector's own resets)."""
+    from trakdis.envs import close_env
+    from trakdis.policies import load_policy
+
+    handle = load_policy("expert", task="ClothFold", horizon=4) if kind == "expert" else _tiny_teacher(4)
+    envs = [handle.make_env(num_envs=2, split="eval") for _ in range(2)]
+    try:
+        reference = rollout_reference(envs[0], handle.make_policy(seed=0), 3, 4, seed=11)
+        res = run_episodes(envs[1], handle.make_policy(seed=0), 3, max_steps=4, keep_episodes=True, desc=None, seed=11)
+    finally:
+        for env in envs:
+            close_env(env)
+    assert_same_episodes(reference, res)
+
+
+def test_multi_sync_collector_plays_the_same_episodes_and_shuts_down():
+    """2 processes, each with its own ClothFold env and copy of the policy: the episodes of the
+    single-process collector (the same seeded configurations), with every env reset by run_episodes
+    between batches (max_steps < horizon) or by the collector (max_steps = horizon); a DT teacher's
+    weights reach the processes.
+    No process is left and the thread count is kept."""
+    from trakdis.envs import close_env
+    from trakdis.policies import load_policy
+
+    expert, teacher = load_policy("expert", task="ClothFold", horizon=5), _tiny_teacher(5)
+    threads = torch.get_num_threads()
+    for handle, steps, exact in ((expert, 3, True), (teacher, 5, False)):
+        env = handle.make_env(num_envs=2, split="eval")
+        try:
+            single = run_episodes(env, handle.make_policy(seed=0), 4, max_steps=steps, keep_episodes=True, desc=None,
+                                  seed=5)
+        finally:
+            close_env(env)
+        env = handle.make_env(num_envs=2, split="eval", parallel=True)
+        multi = run_episodes(env, handle.make_policy(seed=0), 4, max_steps=steps, keep_episodes=True, desc=None,
+                             seed=5, collector="multi_sync")
+        assert env.is_closed  # only described the processes' envs
+        assert multi.num_envs == 2 and len(multi.episodes) == 4
+        # batched vs one-row forward passes of the DT may differ in the last bits
+        assert_same_episodes(single.episodes, multi, exact=exact)
+        assert not multiprocessing.active_children()
+        assert torch.get_num_threads() == threads
