@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal
 
 import torch
@@ -42,7 +41,7 @@ from trakdis.optim import OptimConfig, mean_metrics
 from trakdis.policies import PolicyHandle, load_encoder, load_policy, save_policy, weight_copied_student
 from trakdis.transforms import ProprioceptionOverride
 from trakdis.utils.checkpoint import CheckpointError
-from trakdis.utils.logger import latest_run_dir
+from trakdis.utils.logger import latest_run_file
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -120,16 +119,6 @@ PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_pe
                      "eval_every": 10, "updates_per_round": 100, "batch_size": 256}}
 
 
-def _resolve(spec: str, root: str, recipe: str, filename: str) -> Path:
-    if spec != "latest":
-        return Path(spec)
-    run = latest_run_dir(root, recipe)
-    if run is None or not (run / filename).exists():
-        raise FileNotFoundError(f"no {filename} under {Path(root) / recipe}: run recipes/{recipe}.py first "
-                                f"or pass --{'teacher' if recipe == 'online_dt' else 'encoder'} PATH")
-    return run / filename
-
-
 def _episode_shares(cfg: DistillConfig, round_index: int) -> list[int]:
     """Episodes per acting policy in this round: all for one policy, or DAgger's decaying mixture
     (teacher share 1 in the first round, 0 in the last)."""
@@ -149,10 +138,11 @@ def main(argv=None) -> dict:
     from trakdis.envs import task_spec
     from trakdis.transforms import StateNoise
 
-    teacher = load_policy(_resolve(cfg.teacher, cfg.root, "online_dt", "policy.pt"), device=cfg.device)
+    teacher = load_policy(latest_run_file(cfg.teacher, cfg.root, "online_dt", "policy.pt", flag="--teacher"),
+                          device=cfg.device)
     if teacher.kind != "teacher":
         raise CheckpointError(f"{teacher.source} holds a {teacher.kind}, not a teacher")
-    enc_path = _resolve(cfg.encoder, cfg.root, "train_encoder", "encoder.pt")
+    enc_path = latest_run_file(cfg.encoder, cfg.root, "train_encoder", "encoder.pt", flag="--encoder")
     encoder, enc_file = load_encoder(enc_path)
     if enc_file["task"] != teacher.task:
         raise ValueError(f"encoder {enc_path} is for {enc_file['task']}, teacher {teacher.source} for {teacher.task}")

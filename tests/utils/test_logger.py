@@ -64,3 +64,23 @@ def test_run_dirs(tmp_path):
     auto = make_run_dir("online_dt", root=tmp_path)
     auto2 = make_run_dir("online_dt", root=tmp_path)
     assert auto != auto2 and auto.parent == run.parent
+
+
+def test_latest_run_file(tmp_path):
+    import os
+    from pathlib import Path
+
+    from trakdis.utils.logger import latest_run_file
+
+    assert latest_run_file("some/policy.pt", tmp_path, "online_dt", "policy.pt", flag="--teacher") == \
+        Path("some/policy.pt")
+    with pytest.raises(FileNotFoundError, match=r"run recipes/online_dt.py first or pass --teacher PATH"):
+        latest_run_file("latest", tmp_path, "online_dt", "policy.pt", flag="--teacher")
+    for i, name in enumerate(["a", "b"]):
+        run = tmp_path / "online_dt" / name
+        run.mkdir(parents=True)
+        (run / "config.json").write_text("{}")
+        (run / "policy.pt").write_text("")
+        os.utime(run, (1000 + i, 1000 + i))
+    assert latest_run_file("latest", tmp_path, "online_dt", "policy.pt", flag="--teacher") == \
+        tmp_path / "online_dt" / "b" / "policy.pt"

@@ -19,7 +19,7 @@ import pandas as pd
 
 from .checkpoint import atomic_write_bytes
 
-__all__ = ["check_run_name", "make_run_dir", "latest_run_dir", "WideCSVLogger"]
+__all__ = ["check_run_name", "make_run_dir", "latest_run_dir", "latest_run_file", "WideCSVLogger"]
 
 
 def latest_run_dir(root: str | Path, recipe: str) -> Path | None:
@@ -29,6 +29,18 @@ def latest_run_dir(root: str | Path, recipe: str) -> Path | None:
         return None
     runs = [p for p in base.iterdir() if p.is_dir() and (p / "config.json").exists()]
     return max(runs, key=lambda p: p.stat().st_mtime) if runs else None
+
+
+def latest_run_file(spec: str, root: str | Path, recipe: str, filename: str, *, flag: str) -> Path:
+    """``spec`` as a path; for ``"latest"``, ``filename`` in the newest run of ``recipe`` under
+    ``root`` (a ``FileNotFoundError`` naming the recipe to run and the option ``flag`` if none has it)."""
+    if spec != "latest":
+        return Path(spec)
+    run = latest_run_dir(root, recipe)
+    if run is None or not (run / filename).exists():
+        raise FileNotFoundError(f"no {filename} under {Path(root) / recipe}: run recipes/{recipe}.py first "
+                                f"or pass {flag} PATH")
+    return run / filename
 
 
 def check_run_name(name: str) -> str:
