@@ -20,6 +20,7 @@ import sys
 from dataclasses import dataclass, field
 
 import torch
+from tensordict import TensorDict
 
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps
 from trakdis.envs.specs import TaskName
@@ -152,13 +153,17 @@ def main(argv=None) -> dict:
             # The images the weight-copied student sees: its error there is what the teacher's
             # weights must act on (docs/recipes/distill.md), and expert images never show them.
             new, metrics = _student_rollouts(cfg, spec, teacher, encoder, seed=cfg.seed + 5000 + state["rounds_done"])
-            state["student_steps"] = new if state["student_steps"] is None else torch.cat([state["student_steps"], new])
+            new = new.to_dict()  # plain tensors: the checkpoint loader refuses TensorDicts
+            old = state["student_steps"]
+            state["student_steps"] = new if old is None else {k: torch.cat([old[k], v]) for k, v in new.items()}
             state["rounds_done"] += 1
             run.log(state["epoch"], {f"student/{k}": v for k, v in metrics.items()})
             run.print(f"student round {state['rounds_done']}/{cfg.student_rounds}: normalized performance "
                       f"{metrics['normalized_performance']:.3f}, encoder error on its states: corners "
-                      f"{metrics['corners_cm']:.2f} cm, pickers {metrics['pickers_cm']:.2f} cm; +{new.shape[0]} images")
-        epoch_train = train if state["student_steps"] is None else torch.cat([train, state["student_steps"]])
+                      f"{metrics['corners_cm']:.2f} cm, pickers {metrics['pickers_cm']:.2f} cm; +{len(new['state'])} images")
+        student = state["student_steps"]
+        epoch_train = train if student is None else torch.cat(
+            [train, TensorDict(student, batch_size=[len(student["state"])])])
         order = torch.randperm(epoch_train.shape[0])
         totals, n = {"loss_encoder": 0.0, "mae": 0.0}, 0
         for i in progress(range(0, epoch_train.shape[0], cfg.batch_size), desc=f"epoch {state['epoch'] + 1}"):

@@ -330,3 +330,7 @@ def test_train_encoder_on_the_weight_copied_students_states(workdir, teacher):
     assert frame["student/pickers_cm"].notna().sum() == 1
     ck = load_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "encoder.pt")
     assert ck["student_rounds"] == 1 and ck["epoch"] == 2
+    # the run's checkpoint (with the student's images) loads with the safe loader, so --resume works
+    ck = load_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "checkpoint.pt")
+    assert ck["student_steps"]["pixels"].shape[0] == 2 * HORIZON
+    run_recipe(workdir, "train_encoder", "--resume", "--name", "enc-student")
