@@ -12,20 +12,18 @@ from .conftest import online_dt_args, run_recipe
 def test_online_dt_rollouts_on_a_2_process_collector(workdir, dataset, teacher):
     # no mid-run evaluation and no expert: each multi_sync call starts its processes (docs/scaling.md)
     out = run_recipe(workdir, "online_dt", *online_dt_args("multi", "--collector", "multi_sync", "--num-envs", 2,
-                                                           "--eval-every", 0, "--no-eval-expert"))
+                                                           "--eval-every", 0, "--no-eval-expert", "--online-rounds", 1))
     run_dir = workdir / "runs" / "online_dt" / "multi"
     assert json.loads((run_dir / "config.json").read_text())["collector"] == "multi_sync"
-    assert "round 2/2: rollout normalized performance" in out.stdout and "2 envs" in out.stdout
+    assert "round 1/1: rollout normalized performance" in out.stdout and "2 envs" in out.stdout
     ck = load_checkpoint(run_dir / "checkpoint.pt")
-    assert ck["counters"]["rounds"] == 2 and ck["buffer"]["num_online_added"] == 4  # 2 rounds x 2 episodes
+    assert ck["counters"]["rounds"] == 1 and ck["buffer"]["num_online_added"] == 2  # 1 round x 2 episodes
     frame = pd.read_csv(run_dir / "log.csv")
-    assert frame["online/normalized_performance"].notna().sum() == 2
-    # as with one process (the teacher fixture): the same update steps logged and the same number of
-    # rollouts offered to the buffer; the scores are not compared: the DT's forward on one env per
-    # process rounds differently from its batched forward, and the cloth dynamics amplify that
-    # (docs/scaling.md)
+    assert frame["online/normalized_performance"].notna().sum() == 1
+    # as with one process (the teacher fixture, up to its first round): the same update steps logged;
+    # the scores are not compared: the DT's forward on one env per process rounds differently from
+    # its batched forward, and the cloth dynamics amplify that (docs/scaling.md)
     ref = pd.read_csv(teacher / "log.csv")
-    assert frame["step"].tolist() == ref.loc[ref["step"] > 0, "step"].tolist()
-    assert ck["buffer"]["num_online_added"] == load_checkpoint(teacher / "checkpoint.pt")["buffer"]["num_online_added"]
+    assert frame["step"].tolist() == ref.loc[(ref["step"] > 0) & (ref["step"] <= 6 + 3), "step"].tolist()
     assert frame["online/kept"].dropna().between(0, 2).all() and ck["buffer"]["online"].sum() <= frame["online/kept"].sum()
     assert frame[["online/normalized_performance", "eval/normalized_performance"]].dropna().abs().lt(10).all().all()
