@@ -75,6 +75,8 @@ def stage(run: Run, name: str, run_name: str, output: str, args: list[str], timi
     common = ["--name", run_name, "--root", cfg.root, "--seed", str(cfg.seed), "--threads", str(cfg.threads)]
     if not cfg.progress:
         common.append("--no-progress")
+    if cfg.logger != "csv":
+        common += ["--logger", cfg.logger]
     if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv")):
         common.append("--resume")  # an interrupted stage continues (evaluate.py starts over)
     start = time.perf_counter()

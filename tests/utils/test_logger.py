@@ -1,3 +1,4 @@
+import json
 import numpy as np
 import pandas as pd
 import pytest
@@ -84,3 +85,48 @@ def test_latest_run_file(tmp_path):
         os.utime(run, (1000 + i, 1000 + i))
     assert latest_run_file("latest", tmp_path, "online_dt", "policy.pt", flag="--teacher") == \
         tmp_path / "online_dt" / "b" / "policy.pt"
+
+
+def test_wide_csv_logger_is_a_torchrl_logger(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.record.loggers import Logger
+
+    def torchrl_style(logger: Logger) -> None:  # code written against TorchRL's interface only
+        logger.log_scalar("train/reward", 1.5, step=3)
+        logger.log_metrics({"train/loss": torch.tensor(0.25), "eval/score": np.float32(0.5)}, step=3)
+        logger.log_metrics(TensorDict({"a": {"b": torch.tensor(7)}}, []), step=5)
+        logger.log_scalar("count", 10.0)  # no step: the n-th value of a name goes to step n
+        logger.log_scalar("count", 11.0)
+
+    log = WideCSVLogger(tmp_path / "run" / "log.csv")
+    assert isinstance(log, Logger) and log.exp_name == "run" and "log.csv" in repr(log)
+    torchrl_style(log)
+    log.log(3, {"train/extra": 2})
+    log.close()
+    frame = pd.read_csv(tmp_path / "run" / "log.csv")
+    assert list(frame.columns) == ["step", "train/reward", "train/loss", "eval/score", "a/b", "count", "train/extra"]
+    assert frame["step"].tolist() == [0, 1, 3, 5]
+    row = frame.set_index("step").loc[3]
+    assert (row["train/reward"], row["train/loss"], row["eval/score"], row["train/extra"]) == (1.5, 0.25, 0.5, 2)
+    assert frame.set_index("step")["count"].loc[[0, 1]].tolist() == [10.0, 11.0]
+    assert frame.set_index("step").loc[5, "a/b"] == 7
+
+    log.log_hparams({"lr": 0.1, "nested": {"a": None}})
+    assert json.loads((tmp_path / "run" / "hparams.json").read_text()) == {"lr": 0.1, "nested": {"a": None}}
+    with pytest.raises(NotImplementedError, match="scalars only"):
+        log.log_video("rollout", torch.zeros(1, 2, 3, 4, 4))
+    with pytest.raises(NotImplementedError, match="scalars only"):
+        log.log_histogram("w", torch.zeros(3))
+    assert log.state_dict()["exp_name"] == "run"
+
+
+@pytest.mark.parametrize("kind", ["tensorboard", "wandb"])
+def test_missing_logger_backend_names_the_package_and_extra(monkeypatch, kind):
+    from trakdis.utils import logger as logger_module
+
+    monkeypatch.setattr(logger_module, "_has_package", lambda name: False)
+    logger_module.check_logger_backend("csv")  # needs nothing
+    with pytest.raises(ModuleNotFoundError, match=rf"--logger {kind} needs the '{kind}' package.*trakdis\[{kind}\]"):
+        logger_module.check_logger_backend(kind)
+    with pytest.raises(ValueError, match="unknown logger"):
+        logger_module.check_logger_backend("mlflow")

@@ -100,3 +100,53 @@ def test_run_state_saves_and_resumes_counters_objects_and_rng(tmp_path, counters
     assert torch.equal(other.weight, model.weight)
     state.restore_rng()
     assert torch.equal(torch.rand(3), expected)
+
+
+def test_logger_backend_missing_is_refused_before_the_run_starts(tmp_path, monkeypatch):
+    from trakdis.utils import logger as logger_module
+
+    monkeypatch.setattr(logger_module, "_has_package", lambda name: False)
+    with pytest.raises(ModuleNotFoundError, match=r"--logger tensorboard needs the 'tensorboard' package.*"
+                                                  r"pip install 'trakdis\[tensorboard\]'"):
+        train(["--root", str(tmp_path), "--name", "a", "--logger", "tensorboard", "--no-progress"])
+    assert not (tmp_path / "toy").exists()
+
+
+def test_logger_backend_gets_every_row_and_resumes_from_the_checkpoint(tmp_path, monkeypatch):
+    """With --logger tensorboard|wandb, run.log writes log.csv and TorchRL's logger (here a stand-in:
+    another WideCSVLogger, itself a TorchRL Logger); the logger's state travels in the checkpoint."""
+    from trakdis.utils import logger as logger_module
+    from trakdis.utils import run as run_module
+
+    opened, hparams = [], []
+
+    def fake_backend(kind, directory, name, *, state_dict=None):
+        opened.append((kind, name, state_dict))
+        backend = logger_module.WideCSVLogger(directory / f"backend{len(opened)}.csv")
+        backend.log_hparams = hparams.append
+        return backend
+
+    monkeypatch.setattr(logger_module, "_has_package", lambda name: True)
+    monkeypatch.setattr(run_module, "make_torchrl_logger", fake_backend)
+    root = str(tmp_path)
+    run, _ = train(["--root", root, "--name", "a", "--logger", "tensorboard", "--stop-after", "3", "--no-progress"])
+    assert run.cfg.logger == "tensorboard" and opened[0] == ("tensorboard", "toy/a", None)
+    assert hparams[0]["logger"] == "tensorboard" and hparams[0]["lr"] == 0.1
+    assert pd.read_csv(run.dir / "backend1.csv")["train/loss"].tolist() == [1.0, 2.0, 3.0]
+    saved = torch.load(run.checkpoint_path, weights_only=True)
+    assert saved["logger"]["kind"] == "tensorboard" and saved["logger"]["state"]["exp_name"] == "a"
+    run2, _ = train(["--root", root, "--resume", "--name", "a", "--no-progress"])
+    assert run2.dir == run.dir and opened[1][2]["exp_name"] == "a"  # reopened with the checkpoint's logger state
+    assert pd.read_csv(run.dir / "backend2.csv")["step"].tolist() == [3, 4, 5, 6]
+    assert pd.read_csv(run.dir / "log.csv")["step"].tolist() == [1, 2, 3, 4, 5, 6]
+
+
+def test_tensorboard_logger_writes_event_files(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run, _ = train(["--root", str(tmp_path), "--name", "tb", "--logger", "tensorboard", "--no-progress"])
+    events = EventAccumulator(str(run.dir / "tensorboard"))
+    events.Reload()
+    assert [e.value for e in events.Scalars("train/loss")] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert pd.read_csv(run.dir / "log.csv")["train/loss"].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]

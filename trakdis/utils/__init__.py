@@ -1,7 +1,8 @@
 """Generic helpers that know nothing of trakdis's domain (no import from trakdis outside
 ``trakdis.utils``): dataclass CLI configs (tyro) and ``config.json``, run directories and the
-``Run`` skeleton, wide CSV logs, OpenCV plots, atomic writes and checkpoints, RNG state, phase
-timers, videos and progress bars."""
+``Run`` skeleton, wide CSV logs (a TorchRL ``Logger``; TensorBoard/W&B through TorchRL's
+loggers), OpenCV plots, atomic writes and checkpoints, RNG state, phase timers, videos and
+progress bars."""
 from .checkpoint import (
     CheckpointError,
     atomic_write_bytes,
@@ -20,7 +21,7 @@ from .config import (
     parse_config,
     save_config,
 )
-from .logger import WideCSVLogger, latest_run_dir, make_run_dir
+from .logger import WideCSVLogger, latest_run_dir, make_run_dir, make_torchrl_logger
 from .plot import plot_csv, plot_curves
 from .progress import progress
 from .run import Run, RunConfig, seed_everything
@@ -44,6 +45,7 @@ __all__ = [
     "WideCSVLogger",
     "latest_run_dir",
     "make_run_dir",
+    "make_torchrl_logger",
     "plot_csv",
     "plot_curves",
     "progress",

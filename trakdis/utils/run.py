@@ -19,7 +19,10 @@ A recipe looks like::
 on the command line, so ``--resume --name X`` continues run X with its own configuration;
 the CSV log is truncated to the checkpoint's step so that rows are neither lost nor duplicated.
 ``--stop-after N`` makes the recipe stop (checkpoint written) once its main counter reaches N,
-which is how the tests simulate a killed run.
+which is how the tests simulate a killed run. ``--logger tensorboard`` / ``--logger wandb`` log
+every ``run.log`` to TorchRL's TensorBoard or W&B logger as well (the wide CSV stays: the recipes
+read it back for the curves); the backend's state is saved in the checkpoint, so ``--resume``
+continues the same event directory or W&B run.
 """
 from __future__ import annotations
 
@@ -30,14 +33,15 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Literal, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
+from torchrl.record.loggers import Logger
 
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .config import load_config, parse_config, save_config
-from .logger import WideCSVLogger, make_run_dir
+from .logger import WideCSVLogger, check_logger_backend, make_run_dir, make_torchrl_logger
 from .plot import plot_csv
 
 __all__ = ["RunConfig", "Run", "RunState", "seed_everything"]
@@ -64,6 +68,10 @@ class RunConfig:
     time-sliced runs, continue with --resume"""
     progress: bool = True
     """show tqdm progress bars"""
+    logger: Literal["csv", "tensorboard", "wandb"] = "csv"
+    """where metrics go: csv (log.csv only), tensorboard or wandb (TorchRL's logger under the run
+    directory, and log.csv too); tensorboard and wandb need the extra of that name, e.g.
+    pip install 'trakdis[tensorboard]'"""
 
 
 def seed_everything(seed: int) -> None:
@@ -82,6 +90,7 @@ class Run:
         self.checkpoint_path = self.dir / "checkpoint.pt"
         self.log_path = self.dir / "log.csv"
         self._logger: WideCSVLogger | None = None
+        self._backend: Logger | None = None
         self._resume_state: dict[str, Any] | None = None
         self.t0 = time.time()
 
@@ -97,6 +106,7 @@ class Run:
         description: str | None = None,
     ) -> "Run":
         cfg = parse_config(cfg_cls, argv, presets=presets, description=description)
+        check_logger_backend(cfg.logger)  # before anything is written
         resuming = cfg.resume
         directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=resuming)
         saved = directory / "config.json"
@@ -109,6 +119,7 @@ class Run:
             # belongs to one invocation, so a resumed run never inherits it.
             own = dataclasses.replace(load_config(cfg_cls, saved), stop_after=None)
             cfg = parse_config(cfg_cls, argv, presets=presets, description=description, default=own)
+            check_logger_backend(cfg.logger)
         cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
         save_config(cfg, saved)
         run = cls(recipe, cfg, directory)
@@ -144,12 +155,32 @@ class Run:
             self._logger = WideCSVLogger(self.log_path, resume=self.log_path.exists(), truncate_after=step)
         return self._logger
 
+    @property
+    def backend(self) -> Logger | None:
+        """TorchRL's logger chosen with ``--logger`` (``None`` for ``csv``), opened on first use."""
+        if self._backend is None and self.cfg.logger != "csv":
+            saved = (self._resume_state or {}).get("logger") or {}
+            state = saved.get("state") if saved.get("kind") == self.cfg.logger else None
+            self._backend = make_torchrl_logger(self.cfg.logger, self.dir, f"{self.recipe}/{self.dir.name}",
+                                                state_dict=state)
+            self._backend.log_hparams(_flat_hparams(dataclasses.asdict(self.cfg)))
+        return self._backend
+
     def log(self, step: int, metrics: Mapping[str, Any]) -> None:
         self.logger.log(step, metrics)
+        if self.cfg.logger != "csv":
+            numbers = {k: v for k, v in metrics.items() if k != "step" and not isinstance(v, str)}
+            if numbers:
+                self.backend.log_metrics(numbers, step=int(step))
 
     def save_checkpoint(self, state: Mapping[str, Any], *, step: int) -> Path:
         self.logger.flush()
-        return save_checkpoint(self.checkpoint_path, {**state, "step": int(step), "recipe": self.recipe,
+        extra = {}
+        if self._backend is not None:
+            extra["logger"] = {"kind": self.cfg.logger, "state": self._backend.state_dict()}
+        elif self._resume_state is not None and "logger" in self._resume_state:
+            extra["logger"] = self._resume_state["logger"]  # not opened since the resume: keep its state
+        return save_checkpoint(self.checkpoint_path, {**state, **extra, "step": int(step), "recipe": self.recipe,
                                                      "config": dataclasses.asdict(self.cfg)})
 
     def should_stop(self, counter: int) -> bool:
@@ -161,6 +192,9 @@ class Run:
 
     def finish(self, *, columns: Sequence[str] | None = None) -> Path | None:
         """Flush the log and write ``curves.png`` (returns its path, or None without a log)."""
+        if self._backend is not None:
+            self._backend.close()
+            self._backend = None
         if self._logger is None and not self.log_path.exists():
             return None
         self.logger.close()
@@ -169,6 +203,18 @@ class Run:
         except Exception as err:  # a figure must never lose a finished run
             print(f"warning: could not draw curves: {err}", file=sys.stderr)
             return None
+
+
+def _flat_hparams(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``cfg`` with nested dicts flattened to ``a.b`` keys and values other than numbers, strings
+    and booleans written as strings (what TensorBoard's hparams accept)."""
+    out: dict[str, Any] = {}
+    for key, value in cfg.items():
+        if isinstance(value, Mapping):
+            out.update(_flat_hparams(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value if isinstance(value, (bool, int, float, str)) else str(value)
+    return out
 
 
 class RunState(dict):
