@@ -28,10 +28,6 @@ def test_background_error_names_the_file(tmp_path):
     missing = tmp_path / "no_such_policy.pt"
     with pytest.raises(FileNotFoundError, match="no_such_policy.pt"):
         BackgroundEvaluation(missing, task="ClothFold", horizon=3, num_episodes=1)
-    missing.write_bytes(b"not a policy file")  # fails in the worker: its error comes back
-    job = BackgroundEvaluation(missing, task="ClothFold", horizon=3, num_episodes=1, nice=0)
-    with pytest.raises(RuntimeError, match="no_such_policy.pt"):
-        job.result()
 
 
 def test_background_rejects_bad_counts():
