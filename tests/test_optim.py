@@ -5,6 +5,7 @@ from tensordict import TensorDict
 
 from trakdis.modules import DTConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
+from quadratic_loss import Quadratic
 from trakdis.optim import Lamb, Updater, make_optimizer, make_warmup_scheduler, mean_metrics
 
 
@@ -67,14 +68,6 @@ def test_warmup_then_cosine_decay_then_constant():
 
 
 def test_updater_switches_to_a_constant_lr():
-    class Quadratic(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.w = torch.nn.Parameter(torch.ones(2))
-
-        def forward(self, td):
-            return TensorDict(loss_q=(self.w**2).sum())
-
     up = Updater(Quadratic(), optimizer="adam", lr=1e-2, warmup_steps=1, decay_steps=4, min_lr_fraction=0.5)
     lrs = [up.step(TensorDict())["lr"] for _ in range(6)]
     assert lrs[3:] == [5e-3] * 3

@@ -4,6 +4,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
+from quadratic_loss import Quadratic
 from trakdis.optim import Updater
 from trakdis.training import train_updates
 from trakdis.utils.run import Run, RunConfig, RunState
@@ -14,13 +15,6 @@ class Cfg(RunConfig):
     pass
 
 
-class Quadratic(torch.nn.Module):
-    def __init__(self):
-        super().__init__()
-        self.w = torch.nn.Parameter(torch.ones(2))
-
-    def forward(self, td):
-        return TensorDict(loss_q=(self.w**2).sum())
 
 
 def loop(tmp_path, *argv, total=7):

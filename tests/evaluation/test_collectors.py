@@ -9,43 +9,16 @@ import pytest
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import Bounded, Composite, Unbounded
-from torchrl.envs import EnvBase, SerialEnv, StepCounter, TransformedEnv
+from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from trakdis.evaluation import run_episodes, split_episodes, worker_env_fns
+from walk_env import Walk
+
+Drift = functools.partial(Walk, random_start=True)  # a seeded random start at each reset
 
 
-class Drift(EnvBase):
-    """1-d drift from a random start: state0 ~ U(-1, 1) drawn from the env's seeded generator at each
-    reset, state += action, normalized_performance = state; ``unstable_at``: the episode ends early."""
 
-    def __init__(self, unstable_at=None):
-        super().__init__(batch_size=())
-        self.unstable_at = unstable_at
-        self.rng = torch.Generator().manual_seed(12345)
-        self.observation_spec = Composite(
-            state=Unbounded(shape=(1,)), normalized_performance=Unbounded(shape=(1,)),
-            sim_unstable=Unbounded(shape=(1,), dtype=torch.bool),
-        )
-        self.action_spec = Bounded(-1, 1, shape=(1,))
-        self.reward_spec = Unbounded(shape=(1,))
-
-    def _reset(self, td):
-        self._t = 0
-        s = torch.rand(1, generator=self.rng) * 2 - 1
-        return TensorDict(state=s, normalized_performance=s.clone(), sim_unstable=torch.zeros(1, dtype=torch.bool),
-                          done=torch.zeros(1, dtype=torch.bool), terminated=torch.zeros(1, dtype=torch.bool))
-
-    def _step(self, td):
-        self._t += 1
-        s = td["state"] + td["action"]
-        bad = self.unstable_at is not None and self._t >= self.unstable_at
-        return TensorDict(state=s, normalized_performance=s.clone(), reward=-s.abs(),
-                          sim_unstable=torch.tensor([bad]), done=torch.tensor([bad]), terminated=torch.zeros(1, dtype=torch.bool))
-
-    def _set_seed(self, seed):
-        self.rng.manual_seed(int(seed))
 
 
 def make(h=5, unstable_at=None):

@@ -4,40 +4,14 @@ import pytest
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
-from torchrl.data import Bounded, Composite, Unbounded
-from torchrl.envs import EnvBase, SerialEnv, StepCounter, TransformedEnv
+from torchrl.data import Composite, Unbounded
+from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
 
 from trakdis.evaluation import run_episodes, split_episodes, summarize, write_summary_table
+from walk_env import Walk
 
 
-class Walk(EnvBase):
-    """1-d walk: state += action; normalized_performance = state (so the final value is the sum of actions)."""
 
-    def __init__(self, unstable_at=None):
-        super().__init__(batch_size=())
-        self.unstable_at = unstable_at
-        self.observation_spec = Composite(
-            state=Unbounded(shape=(1,)), normalized_performance=Unbounded(shape=(1,)),
-            sim_unstable=Unbounded(shape=(1,), dtype=torch.bool),
-        )
-        self.action_spec = Bounded(-1, 1, shape=(1,))
-        self.reward_spec = Unbounded(shape=(1,))
-
-    def _reset(self, td):
-        self._t = 0
-        z = torch.zeros(1)
-        return TensorDict(state=z, normalized_performance=z.clone(), sim_unstable=torch.zeros(1, dtype=torch.bool),
-                          done=torch.zeros(1, dtype=torch.bool), terminated=torch.zeros(1, dtype=torch.bool))
-
-    def _step(self, td):
-        self._t += 1
-        s = td["state"] + td["action"]
-        bad = self.unstable_at is not None and self._t >= self.unstable_at
-        return TensorDict(state=s, normalized_performance=s.clone(), reward=-s.abs(),
-                          sim_unstable=torch.tensor([bad]), done=torch.tensor([bad]), terminated=torch.zeros(1, dtype=torch.bool))
-
-    def _set_seed(self, seed):
-        return seed
 
 
 def make(h=5, **kw):
