@@ -107,10 +107,10 @@ def torchrl_rate(task, steps, seed, from_pixels):
     return steps / dt
 
 
-def parallel_speedup(task, steps, seed, from_pixels, use_buffers=None):
+def parallel_speedup(task, steps, seed, from_pixels, use_buffers=None, sleep_wait=False):
     from torchrl.envs import ParallelEnv
 
-    from trakdis.envs import ExpertPolicy, make_env
+    from trakdis.envs import ExpertPolicy, SleepWaitParallelEnv, make_env
 
     make = functools.partial(make_env, task, from_pixels=from_pixels, horizon=steps)
     single = make()
@@ -120,9 +120,10 @@ def parallel_speedup(task, steps, seed, from_pixels, use_buffers=None):
     single.rollout(steps, policy)
     t_single = time.perf_counter() - t0
     single.close()
-    # use_buffers=False: TorchRL 0.14's shared-memory path makes the main process spin-poll the
-    # workers' done flags, which takes a whole core away from 2 workers on a 2-core machine.
-    env = ParallelEnv(2, make, use_buffers=use_buffers)
+    # TorchRL 0.14's shared-memory path makes the main process spin-poll the workers' done flags, which
+    # takes a whole core away from 2 workers on a 2-core machine; use_buffers=False pickles every step
+    # through the pipes; SleepWaitParallelEnv (the recipes' choice) keeps the buffers and sleeps.
+    env = SleepWaitParallelEnv(2, make) if sleep_wait else ParallelEnv(2, make, use_buffers=use_buffers)
     env.set_seed(seed)
     env.reset()  # start the workers outside the timing
     t0 = time.perf_counter()
@@ -187,7 +188,7 @@ def main(argv=None):
 
     print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()}, steps/episode {args.steps}")
     print(f"{'task':28s} {'state sps':>9s} {'pixel sps':>9s} {'s/100 px':>8s} {'env ms':>7s} "
-          f"{'raw ms':>7s} {'overhead':>8s} {'2-worker':>8s} {'2w nobuf':>8s} {'2 procs':>8s}")
+          f"{'raw ms':>7s} {'overhead':>8s} {'2-worker':>8s} {'2w nobuf':>8s} {'2w sleep':>8s} {'2 procs':>8s}")
     for task in args.tasks or TASKS:
         env_t, raw_t, n_steps = gym_vs_raw(task, args.steps, args.seed)
         sps = torchrl_rate(task, args.steps, args.seed, from_pixels=False)
@@ -195,13 +196,15 @@ def main(argv=None):
         nan = float("nan")
         speedup = nan if args.no_parallel else parallel_speedup(task, args.steps, args.seed, True)
         speedup_nb = nan if args.no_parallel else parallel_speedup(task, args.steps, args.seed, True, False)
+        speedup_sw = nan if args.no_parallel else parallel_speedup(task, args.steps, args.seed, True, sleep_wait=True)
         bound = nan if args.no_parallel else two_process_speedup(task, args.steps, args.seed)
         print(f"{task:28s} {sps:9.1f} {pps:9.1f} {100 / pps:8.2f} {1e3 * env_t / args.steps:7.2f} "
-              f"{1e3 * raw_t / args.steps:7.2f} {env_t / raw_t - 1:8.1%} {speedup:7.2f}x {speedup_nb:7.2f}x {bound:7.2f}x",
+              f"{1e3 * raw_t / args.steps:7.2f} {env_t / raw_t - 1:8.1%} {speedup:7.2f}x {speedup_nb:7.2f}x {speedup_sw:7.2f}x {bound:7.2f}x",
               flush=True)
     print("state/pixel sps: TorchRL env steps per second (expert policy included); env ms / raw ms: "
           "CPU time per step of the gym env vs a raw mj_step replay of the same episode; overhead = env/raw - 1; "
-          "2-worker: ParallelEnv(2) frames/s over one env's, with pixels (2w nobuf: use_buffers=False); "
+          "2-worker: ParallelEnv(2) frames/s over one env's, with pixels (2w nobuf: use_buffers=False; "
+          "2w sleep: trakdis's SleepWaitParallelEnv, the recipes' choice); "
           "2 procs: two plain processes running the gym env over one (the machine's bound right now).")
     return 0
 

@@ -253,7 +253,8 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
                   noise, seed, split, horizon, progress, callback, make_env_fn, make_policy_fn, mp_start_method) -> Path:
     """The body of :func:`collect_expert_dataset`, run while it holds the lock on ``tmp``."""
     from torchrl.collectors import Collector
-    from torchrl.envs import ParallelEnv
+
+    from trakdis.envs.batched import SleepWaitParallelEnv
 
     progress_file = tmp / "progress.json"
     chunks_done = 0
@@ -297,9 +298,8 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
     # trained with 2 OpenMP threads afterwards, ~5x slower per update on a loaded 2-core machine.
     threads = torch.get_num_threads()
     if chunks_done < num_chunks:
-        # use_buffers=False: with shared buffers TorchRL 0.14's main process busy-waits while the workers
-        # step, taking a core from them on a 2-core machine (benchmarks/env_speed.py; the data are the same)
-        env = ParallelEnv(W, env_fn, mp_start_method=mp_start_method, use_buffers=False) if W > 1 else env_fn()
+        # a ParallelEnv that does not busy-wait for its workers (trakdis.envs.batched; the data are the same)
+        env = SleepWaitParallelEnv(W, env_fn, mp_start_method=mp_start_method) if W > 1 else env_fn()
         policy = _ReseedablePolicy(policy_fn)
         collector = Collector(
             env, policy, frames_per_batch=W * horizon, total_frames=-1, reset_at_each_iter=True,

@@ -21,7 +21,7 @@ from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_nois
 from trakdis.envs.model import PICKER_MARKER_RADIUS, RENDER_VERSION  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
 from trakdis.envs.torchrl_env import ClothInfoReader, make_env, with_contract_keys  # noqa: E402
-from trakdis.envs.batched import close_env, make_batched_env, start_in_background  # noqa: E402
+from trakdis.envs.batched import SleepWaitParallelEnv, close_env, make_batched_env, start_in_background  # noqa: E402
 
 for _task, _cls in ENV_CLASSES.items():
     _id = f"trakdis/{_task}-v0"
@@ -49,6 +49,7 @@ __all__ = [
     "ClothInfoReader",
     "with_contract_keys",
     "make_batched_env",
+    "SleepWaitParallelEnv",
     "close_env",
     "start_in_background",
 ]

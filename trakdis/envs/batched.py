@@ -1,13 +1,62 @@
 """Batched environments: ``SerialEnv``/``ParallelEnv`` of :func:`~trakdis.envs.make_env` instances,
-closing them without TorchRL's side effect on the thread count, and starting their worker processes
-in the background.
+a ``ParallelEnv`` that waits for its workers without taking a core from them, closing them without
+TorchRL's side effect on the thread count, and starting their worker processes in the background.
 """
 from __future__ import annotations
 
 import functools
+import time
 from typing import Any, Mapping
 
-__all__ = ["close_env", "make_batched_env", "start_in_background"]
+from torchrl.envs import ParallelEnv
+
+__all__ = ["SleepWaitParallelEnv", "close_env", "make_batched_env", "start_in_background"]
+
+
+class SleepWaitParallelEnv(ParallelEnv):
+    """TorchRL's ``ParallelEnv`` with shared-memory buffers, whose main process sleeps while it waits
+    for the workers instead of spinning.
+
+    Own code because TorchRL 0.14's two modes both cost a small machine CPU time at every step
+    (``torchrl/envs/batched_envs.py``): with ``use_buffers=True`` ``_wait_for_workers`` spin-polls the
+    workers' shared done flags and keeps a core busy that the workers need when there are no more
+    cores than workers; with ``use_buffers=False`` every step pickles the tensordicts through the
+    pipes (a socket and a file descriptor per tensor, on both sides). This keeps the shared buffers
+    and TorchRL's flags, and checks them every ``poll_interval`` seconds (default 0.5 ms, against
+    tens of milliseconds per cloth step). Arguments and results are ``ParallelEnv``'s; the default
+    is ``use_buffers=True`` (with ``False`` TorchRL's own pipe wait, which blocks, is used).
+    """
+
+    def __init__(self, *args, poll_interval: float = 5e-4, **kwargs):
+        if poll_interval <= 0:
+            raise ValueError(f"poll_interval must be > 0 seconds, got {poll_interval}")
+        kwargs.setdefault("use_buffers", True)
+        super().__init__(*args, **kwargs)
+        self.poll_interval = float(poll_interval)
+
+    def _wait_for_workers(self, workers_range) -> None:
+        if not self._use_buffers:
+            return super()._wait_for_workers(workers_range)
+        flags, index = self._shm_done_flags, self._worker_indices
+        workers = list(workers_range)
+        deadline = time.monotonic() + self.BATCHED_PIPE_TIMEOUT
+        polls = 0
+        while not all(flags[index[i]] for i in workers):
+            time.sleep(self.poll_interval)
+            polls += 1
+            if polls % 200 == 0:  # about every 0.1 s: a dead worker or a timeout, as TorchRL checks them
+                for i in workers:
+                    if not flags[index[i]] and not self._workers[i].is_alive():
+                        try:
+                            self._shutdown_workers()
+                        finally:
+                            raise RuntimeError(f"Cannot proceed, worker {i} dead.")
+                if time.monotonic() > deadline:
+                    raise RuntimeError(
+                        f"Failed to run all workers within the {self.BATCHED_PIPE_TIMEOUT} sec time limit. This "
+                        "threshold can be increased via the BATCHED_PIPE_TIMEOUT env variable.")
+        for i in workers:
+            flags[index[i]] = 0
 
 
 def close_env(env) -> None:
@@ -89,7 +138,7 @@ def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, se
                      split: str = "train", from_pixels: bool = False, image_size: int = 32,
                      env_kwargs: Mapping[str, Any] | None = None):
     """``SerialEnv``/``ParallelEnv`` of ``num_envs`` :func:`trakdis.envs.make_env` instances (batch ``[num_envs]``)."""
-    from torchrl.envs import ParallelEnv, SerialEnv
+    from torchrl.envs import SerialEnv
 
     from trakdis.envs.torchrl_env import make_env
 
@@ -97,11 +146,9 @@ def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, se
         raise ValueError(f"num_envs must be >= 1, got {num_envs}")
     factory = functools.partial(make_env, task, from_pixels=from_pixels, image_size=image_size, split=split,
                                 **dict(env_kwargs or {}))
-    cls = ParallelEnv if parallel and num_envs > 1 else SerialEnv
-    # spawn: forking a process that already holds a GL context hangs its children. use_buffers=False:
-    # with shared buffers TorchRL 0.14's main process spins while the workers step, which on 2 cores
-    # takes a core from them (benchmarks/env_speed.py: 1.16x vs 1.54x for 2 workers on ClothFold).
-    kwargs = {"mp_start_method": "spawn", "use_buffers": False} if cls is ParallelEnv else {}
+    cls = SleepWaitParallelEnv if parallel and num_envs > 1 else SerialEnv
+    # spawn: forking a process that already holds a GL context hangs its children
+    kwargs = {"mp_start_method": "spawn"} if cls is SleepWaitParallelEnv else {}
     env = cls(num_envs, factory, **kwargs)
     if seed is not None:
         env.set_seed(seed)
