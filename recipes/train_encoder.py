@@ -130,7 +130,8 @@ def main(argv=None) -> dict:
                      encoder=encoder, optim=optim)
     state.load()
     state.restore_rng()
-    teacher = load_teacher(cfg.teacher, task=cfg.task, horizon=cfg.horizon) if cfg.teacher and cfg.student_rounds > 0 else None
+    teacher = None if not cfg.teacher or cfg.student_rounds <= 0 else load_teacher(cfg.teacher, task=cfg.task,
+                                                                                   horizon=cfg.horizon)
     total_epochs = cfg.epochs + (cfg.student_rounds * cfg.student_epochs if teacher is not None else 0)
 
     def validate() -> dict:
@@ -156,7 +157,8 @@ def main(argv=None) -> dict:
         epoch_train = train if student is None else torch.cat(
             [train, TensorDict(student, batch_size=[len(student["state"])])])
         totals, n = {"loss_encoder": 0.0, "mae": 0.0}, 0
-        for batch in shuffled_batches(epoch_train, cfg.batch_size, device=cfg.device, desc=f"epoch {state['epoch'] + 1}"):
+        epoch = f"epoch {state['epoch'] + 1}"
+        for batch in shuffled_batches(epoch_train, cfg.batch_size, device=cfg.device, desc=epoch):
             out = loss(batch)
             optim.zero_grad(set_to_none=True)
             out["loss_encoder"].backward()
