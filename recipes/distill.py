@@ -230,9 +230,8 @@ def main(argv=None) -> dict:
                     buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action", "return_to_go")))
                 rollout_metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
             student.train()
-            history = []
-            for _ in progress(range(cfg.updates_per_round), desc=f"round {state['rounds'] + 1}"):
-                history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
+            history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device))
+                       for _ in progress(range(cfg.updates_per_round), desc=f"round {state['rounds'] + 1}")]
             state["rounds"] += 1
             state["updates"] += cfg.updates_per_round
             run.log(state["updates"], {**mean_metrics(history), **rollout_metrics, "round": state["rounds"]})
@@ -256,8 +255,9 @@ def main(argv=None) -> dict:
                        "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
     state.save()
     run.finish()
-    run.print(f"eval normalized performance: teacher {state['teacher_eval'] if state['teacher_eval'] is not None else float('nan'):.3f}, "
-              f"student before {state['initial_eval']:.3f}, after {final:.3f} ({cfg.eval_episodes} episodes)")
+    teacher_eval = float("nan") if state["teacher_eval"] is None else state["teacher_eval"]
+    run.print(f"eval normalized performance: teacher {teacher_eval:.3f}, student before {state['initial_eval']:.3f}, "
+              f"after {final:.3f} ({cfg.eval_episodes} episodes)")
     return dict(state)
 
 
