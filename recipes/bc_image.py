@@ -23,13 +23,13 @@ from typing import Literal
 
 import torch
 
-from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps
+from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps, split_episodes_train_val
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import EvalProtocol
 from trakdis.modules.baselines import ImageTrunkConfig
 from trakdis.optim import OptimConfig, mean_metrics
 from trakdis.policies import PolicyHandle, save_image_policy
-from trakdis.utils.progress import progress
+from trakdis.training import eval_batches, shuffled_batches
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -80,12 +80,9 @@ def main(argv=None) -> dict:
     path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
                           image_size=cfg.image_size, log=run.print, progress=cfg.progress)
     data, lengths = load_trajectories(path, keys=("pixels", "action"))
-    n_ep = data.shape[0]
-    n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 and cfg.val_fraction > 0 else 0
-    perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
-
-    train = real_steps(data, lengths, perm[n_val:])
-    val = real_steps(data, lengths, perm[:n_val]) if n_val else None
+    train_episodes, val_episodes = split_episodes_train_val(data.shape[0], cfg.val_fraction, seed=cfg.seed)
+    train = real_steps(data, lengths, train_episodes)
+    val = real_steps(data, lengths, val_episodes) if len(val_episodes) else None
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation steps")
 
     trunk = cfg.trunk.make(cfg.image_size).to(cfg.device)
@@ -111,25 +108,19 @@ def main(argv=None) -> dict:
     def validate() -> dict:
         if val is None:
             return {}
-        loss.eval()
-        with torch.no_grad():
-            outs = [loss(val[i : i + 512].to(cfg.device)) for i in range(0, val.shape[0], 512)]
-        loss.train()
+        outs = eval_batches(loss, val, 512, device=cfg.device)
         return {f"val/{k}": float(torch.stack([o[k] for o in outs]).mean()) for k in ("loss_bc", "action_mse")}
 
     while state["epoch"] < cfg.epochs:
-        order = torch.randperm(train.shape[0])
-        history = [updater.step(train[order[i : i + cfg.batch_size]].to(cfg.device))
-                   for i in progress(range(0, train.shape[0], cfg.batch_size), desc=f"epoch {state['epoch'] + 1}")]
+        history = [updater.step(batch) for batch in
+                   shuffled_batches(train, cfg.batch_size, device=cfg.device, desc=f"epoch {state['epoch'] + 1}")]
         state["epoch"] += 1
         run.log(state["epoch"], {**mean_metrics(history), **validate()})
         run.print(f"epoch {state['epoch']}/{cfg.epochs}: loss_bc {run.logger.last('train/loss_bc'):.4f}, "
                   f"action MSE {run.logger.last('train/action_mse'):.4f}")
         if state["epoch"] % cfg.eval_every == 0 and state["epoch"] < cfg.epochs:
             evaluate()
-        state.save()
-        if run.should_stop(state["epoch"]) and state["epoch"] < cfg.epochs:
-            run.print(f"stopping after epoch {state['epoch']} (--stop-after); continue with --resume")
+        if state.save_and_should_stop(cfg.epochs, unit="epoch"):
             return dict(state)
     if state["final_eval"] is None:
         state["final_eval"] = evaluate()

@@ -28,19 +28,18 @@ Writes ``runs/distill/<name>/`` with ``config.json``, ``log.csv``, ``curves.png`
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass, field
 from typing import Literal
 
-import torch
-
-from trakdis.data import DataConfig, ensure_dataset, episode_to_trajectory, load_trajectories, make_buffer
+from trakdis.data import (DataConfig, encode_trajectories, ensure_dataset, episode_to_trajectory, load_trajectories,
+                          make_buffer)
 from trakdis.envs import close_env
 from trakdis.evaluation import EvalProtocol, run_episodes
 from trakdis.optim import OptimConfig, mean_metrics
-from trakdis.policies import PolicyHandle, load_encoder, load_policy, save_policy, weight_copied_student
+from trakdis.policies import load_encoder, load_teacher, save_policy, weight_copied_student
 from trakdis.transforms import ProprioceptionOverride
-from trakdis.utils.checkpoint import CheckpointError
 from trakdis.utils.logger import latest_run_file
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig, RunState
@@ -138,14 +137,10 @@ def main(argv=None) -> dict:
     from trakdis.envs import task_spec
     from trakdis.transforms import StateNoise
 
-    teacher = load_policy(latest_run_file(cfg.teacher, cfg.root, "online_dt", "policy.pt", flag="--teacher"),
-                          device=cfg.device)
-    if teacher.kind != "teacher":
-        raise CheckpointError(f"{teacher.source} holds a {teacher.kind}, not a teacher")
+    teacher = load_teacher(latest_run_file(cfg.teacher, cfg.root, "online_dt", "policy.pt", flag="--teacher"),
+                           device=cfg.device)
     enc_path = latest_run_file(cfg.encoder, cfg.root, "train_encoder", "encoder.pt", flag="--encoder")
-    encoder, enc_file = load_encoder(enc_path)
-    if enc_file["task"] != teacher.task:
-        raise ValueError(f"encoder {enc_path} is for {enc_file['task']}, teacher {teacher.source} for {teacher.task}")
+    encoder, enc_file = load_encoder(enc_path, task=teacher.task)
     task, horizon = teacher.task, teacher.horizon
     # Teacher and student read states standardised with the teacher's statistics (the student's
     # weights start as the teacher's, and the encoder's estimates live in state units).
@@ -197,26 +192,19 @@ def main(argv=None) -> dict:
         path = ensure_dataset(cfg.data, task=task, horizon=horizon, seed=cfg.seed, pixels=True, log=run.print,
                               progress=cfg.progress)
         data, lengths = load_trajectories(path, keys=("pixels", "action", "reward", "state"))
-        with torch.no_grad():
-            pixels = data.get("pixels")
-            est = torch.cat([encoder(torch.as_tensor(pixels[i : i + 16])) for i in range(0, data.shape[0], 16)])
-        offline = data.select("action", "reward", *(("state",) if cfg.proprio_pickers or cfg.distill else ())).to_tensordict()
-        offline.set("state_estimate", est)
-        buffer.load_offline(offline, lengths)
+        keys = ("action", "reward", *(("state",) if cfg.proprio_pickers or cfg.distill else ()))
+        buffer.load_offline(encode_trajectories(data, encoder, keys=keys), lengths)
         run.print(f"{'--expert-data' if cfg.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
 
     evals = EvalProtocol(task, horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
 
-    def evaluate(handle, env, tag, prefix="eval") -> float:  # the same eval configurations every time
-        res = evals.run(run, handle, env, step=state["updates"], tag=tag, prefix=prefix, keep_mode=student,
+    def evaluate(tag) -> float:  # the student, on the same eval configurations every time
+        res = evals.run(run, student_handle, eval_env, step=state["updates"], tag=tag, keep_mode=student,
                         state_error_cm=task_spec(task).state_error_cm)
         return res.summary()["mean"]
 
     eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
-    teacher_actor_handle = PolicyHandle(
-        "teacher", task, horizon, actor=teacher.actor, encoder=encoder, observation_key="state",
-        target_return=teacher.target_return, rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
-        normalizer=teacher.normalizer)
+    teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder)  # its rollouts carry the estimate too
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
               "mixed": [teacher_actor_handle, student_handle]}[cfg.act] if cfg.distill and cfg.episodes_per_round else []
     # Rollouts carry both the true state and the encoder's (noisy) estimate.
@@ -224,14 +212,12 @@ def main(argv=None) -> dict:
                             noise_seed=cfg.seed + 7919 + i, parallel=cfg.parallel) for i, h in enumerate(actors)]
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     try:
-        if cfg.eval_teacher and state["teacher_eval"] is None:
-            t_env = teacher.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
-            try:
-                state["teacher_eval"] = evaluate(teacher, t_env, "teacher", prefix="eval_teacher")
-            finally:
-                close_env(t_env)
+        if cfg.eval_teacher and state["teacher_eval"] is None:  # on its own env, closed afterwards
+            state["teacher_eval"] = evals.run_snapshot(run, teacher, step=state["updates"], tag="teacher",
+                                                       prefix="eval_teacher", parallel=cfg.parallel,
+                                                       keep_mode=student, desc="eval (teacher)").summary()["mean"]
         if state["initial_eval"] is None:
-            state["initial_eval"] = evaluate(student_handle, eval_env, "student before training")
+            state["initial_eval"] = evaluate("student before training")
         while state["rounds"] < cfg.rounds:
             rollout_metrics = {}
             for i, (handle, n) in enumerate(zip(actors, _episode_shares(cfg, state["rounds"]))):
@@ -244,9 +230,8 @@ def main(argv=None) -> dict:
                     buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action", "return_to_go")))
                 rollout_metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
             student.train()
-            history = []
-            for _ in progress(range(cfg.updates_per_round), desc=f"round {state['rounds'] + 1}"):
-                history.append(updater.step(buffer.sample(cfg.batch_size).to(cfg.device)))
+            history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device))
+                       for _ in progress(range(cfg.updates_per_round), desc=f"round {state['rounds'] + 1}")]
             state["rounds"] += 1
             state["updates"] += cfg.updates_per_round
             run.log(state["updates"], {**mean_metrics(history), **rollout_metrics, "round": state["rounds"]})
@@ -254,12 +239,10 @@ def main(argv=None) -> dict:
             run.print(f"round {state['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
                       + "".join(f", rollout ({k.split('/')[1].split('_')[0]}) {v:.3f}" for k, v in rollout_metrics.items()))
             if state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.rounds:
-                evaluate(student_handle, eval_env, f"student after round {state['rounds']}")
-            state.save()
-            if run.should_stop(state["rounds"]) and state["rounds"] < cfg.rounds:
-                run.print(f"stopping after round {state['rounds']} (--stop-after); continue with --resume")
+                evaluate(f"student after round {state['rounds']}")
+            if state.save_and_should_stop(cfg.rounds, key="rounds", unit="round"):
                 return dict(state)
-        final = evaluate(student_handle, eval_env, "student after distillation")
+        final = evaluate("student after distillation")
     finally:
         close_env(eval_env)
         for env in roll_envs:
@@ -272,8 +255,9 @@ def main(argv=None) -> dict:
                        "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
     state.save()
     run.finish()
-    run.print(f"eval normalized performance: teacher {state['teacher_eval'] if state['teacher_eval'] is not None else float('nan'):.3f}, "
-              f"student before {state['initial_eval']:.3f}, after {final:.3f} ({cfg.eval_episodes} episodes)")
+    teacher_eval = float("nan") if state["teacher_eval"] is None else state["teacher_eval"]
+    run.print(f"eval normalized performance: teacher {teacher_eval:.3f}, student before {state['initial_eval']:.3f}, "
+              f"after {final:.3f} ({cfg.eval_episodes} episodes)")
     return dict(state)
 
 

@@ -22,12 +22,12 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDict
 
-from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps
+from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps, split_episodes_train_val
 from trakdis.envs.specs import TaskName
 from trakdis.modules import NormalizedEncoder
 from trakdis.optim import make_optimizer
-from trakdis.policies import save_encoder
-from trakdis.utils.progress import progress
+from trakdis.policies import load_teacher, save_encoder
+from trakdis.training import eval_batches, shuffled_batches
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -99,18 +99,15 @@ def main(argv=None) -> dict:
     path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
                           image_size=cfg.image_size, log=run.print, progress=cfg.progress)
     data, lengths = load_trajectories(path, keys=("pixels", "state"))
-    n_ep = data.shape[0]
     extra = []
     for noise in cfg.extra_noise:
         extra_cfg = dataclasses.replace(cfg.data, path=None, expert_noise=float(noise))
         extra_path = ensure_dataset(extra_cfg, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed + 1, pixels=True,
                                     image_size=cfg.image_size, log=run.print, progress=cfg.progress)
         extra.append((extra_path, *load_trajectories(extra_path, keys=("pixels", "state"))))
-    n_val = max(1, int(round(cfg.val_fraction * n_ep))) if n_ep > 1 else 0
-    perm = torch.randperm(n_ep, generator=torch.Generator().manual_seed(cfg.seed))
-    # Split by episode (images of one episode are strongly correlated).
-    train = real_steps(data, lengths, perm[n_val:])
-    val = real_steps(data, lengths, perm[:n_val]) if n_val else None
+    train_episodes, val_episodes = split_episodes_train_val(data.shape[0], cfg.val_fraction, seed=cfg.seed)
+    train = real_steps(data, lengths, train_episodes)
+    val = real_steps(data, lengths, val_episodes) if len(val_episodes) else None
     for extra_path, extra_data, extra_lengths in extra:  # training only: validation stays on the main dataset
         extra_steps = real_steps(extra_data, extra_lengths)
         train = torch.cat([train, extra_steps])
@@ -118,7 +115,7 @@ def main(argv=None) -> dict:
     train_states = train["state"]
     mean, std = train_states.mean(0), train_states.std(0).clamp_min(1e-3)
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "
-              f"({n_ep - n_val} / {n_val} episodes)")
+              f"({len(train_episodes)} / {len(val_episodes)} episodes)")
 
     encoder = NormalizedEncoder(StateEncoder(spec.state_dim, image_size=cfg.image_size, channels=cfg.channels,
                                              hidden_dim=cfg.hidden_dim, head=cfg.head, stem_stride=cfg.stem_stride,
@@ -133,19 +130,14 @@ def main(argv=None) -> dict:
                      encoder=encoder, optim=optim)
     state.load()
     state.restore_rng()
-    teacher = _load_teacher(cfg, spec) if cfg.teacher and cfg.student_rounds > 0 else None
+    teacher = None if not cfg.teacher or cfg.student_rounds <= 0 else load_teacher(cfg.teacher, task=cfg.task,
+                                                                                   horizon=cfg.horizon)
     total_epochs = cfg.epochs + (cfg.student_rounds * cfg.student_epochs if teacher is not None else 0)
 
     def validate() -> dict:
         if val is None:
             return {"mae": float("nan")}
-        loss.eval()
-        with torch.no_grad():
-            errs = []
-            for i in range(0, val.shape[0], 1024):
-                b = val[i : i + 1024].to(cfg.device)
-                errs.append((encoder(b["pixels"]) - b["state"]).abs())
-        loss.train()
+        errs = eval_batches(loss, val, 1024, lambda b: (encoder(b["pixels"]) - b["state"]).abs(), device=cfg.device)
         return spec.state_error_cm(torch.cat(errs))
 
     while state["epoch"] < total_epochs:
@@ -164,10 +156,9 @@ def main(argv=None) -> dict:
         student = state["student_steps"]
         epoch_train = train if student is None else torch.cat(
             [train, TensorDict(student, batch_size=[len(student["state"])])])
-        order = torch.randperm(epoch_train.shape[0])
         totals, n = {"loss_encoder": 0.0, "mae": 0.0}, 0
-        for i in progress(range(0, epoch_train.shape[0], cfg.batch_size), desc=f"epoch {state['epoch'] + 1}"):
-            batch = epoch_train[order[i : i + cfg.batch_size]].to(cfg.device)
+        epoch = f"epoch {state['epoch'] + 1}"
+        for batch in shuffled_batches(epoch_train, cfg.batch_size, device=cfg.device, desc=epoch):
             out = loss(batch)
             optim.zero_grad(set_to_none=True)
             out["loss_encoder"].backward()
@@ -188,9 +179,7 @@ def main(argv=None) -> dict:
         groups = ", ".join(f"{k.removesuffix('_cm')} {v:.2f} cm" for k, v in val_err.items() if k != "mae")
         run.print(f"epoch {state['epoch']}/{total_epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
                   f"train MAE {totals['mae'] / n:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f} ({groups})")
-        state.save()
-        if run.should_stop(state["epoch"]) and state["epoch"] < total_epochs:
-            run.print(f"stopping after epoch {state['epoch']} (--stop-after); continue with --resume")
+        if state.save_and_should_stop(total_epochs, unit="epoch"):
             return state["best"]
     best = state["best"]
     encoder.load_state_dict(best["state_dict"])
@@ -201,17 +190,6 @@ def main(argv=None) -> dict:
     run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
               f"(state units, mean over {spec.state_dim} dims)")
     return best
-
-
-def _load_teacher(cfg: TrainEncoderConfig, spec):
-    from trakdis.utils.checkpoint import CheckpointError
-    from trakdis.policies import load_policy
-
-    teacher = load_policy(cfg.teacher)
-    if teacher.kind != "teacher" or teacher.task != cfg.task or teacher.horizon != cfg.horizon:
-        raise CheckpointError(f"--teacher {cfg.teacher}: a {teacher.kind} for {teacher.task} (horizon "
-                              f"{teacher.horizon}); expected a teacher for {cfg.task} (horizon {cfg.horizon})")
-    return teacher
 
 
 def _student_rollouts(cfg: TrainEncoderConfig, spec, teacher, encoder, *, seed: int):

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from trakdis.modules import DTConfig, NormalizedEncoder, StateEncoder, make_dt_actor
-from trakdis.policies import load_encoder, load_policy, make_acting_env, save_encoder, save_policy
+from trakdis.policies import load_encoder, load_policy, load_teacher, make_acting_env, save_encoder, save_policy
 from trakdis.utils.checkpoint import CheckpointError, save_checkpoint
 
 
@@ -32,6 +32,16 @@ def test_policy_and_encoder_files(tmp_path):
     assert torch.allclose(enc.eval()(px), enc2(px))
     with pytest.raises(CheckpointError, match="teacher"):
         load_encoder(tmp_path / "policy.pt")
+    with pytest.raises(ValueError, match="is for ClothFold, not ClothFoldDiagonalUnpinned"):
+        load_encoder(tmp_path, task="ClothFoldDiagonalUnpinned")
+    assert load_teacher(tmp_path, task="ClothFoldDiagonalPinned", horizon=10).kind == "teacher"
+    for kw in ({"task": "ClothFold"}, {"horizon": 5}):
+        with pytest.raises(CheckpointError, match="expected a teacher"):
+            load_teacher(tmp_path, **kw)
+    save_policy(tmp_path / "student.pt", kind="student", task="ClothFold", horizon=10, dt_config=cfg, actor=actor,
+                observation_key="state", target_return=-1.0, rtg_scale=1.0, encoder_file=data)
+    with pytest.raises(CheckpointError, match="a student for ClothFold .*expected a teacher$"):
+        load_teacher(tmp_path / "student.pt")
     save_checkpoint(tmp_path / "bad.pt", {"kind": "encoder", "task": "ClothFold", "dt_config": {}, "actor": {},
                                           "observation_key": "state"})
     with pytest.raises(CheckpointError, match="not a policy"):

@@ -35,6 +35,7 @@ __all__ = [
     "make_acting_env",
     "PolicyHandle",
     "load_policy",
+    "load_teacher",
     "save_policy",
     "save_encoder",
     "load_encoder",
@@ -113,7 +114,9 @@ def encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder:
     return enc.eval()
 
 
-def load_encoder(path: str | Path) -> tuple[NormalizedEncoder, dict[str, Any]]:
+def load_encoder(path: str | Path, *, task: str | None = None) -> tuple[NormalizedEncoder, dict[str, Any]]:
+    """The encoder of an encoder file (or of a run directory holding ``encoder.pt``) and the file's
+    dict; ``task``: refuse (``ValueError``) an encoder trained for another task."""
     path = Path(path)
     if path.is_dir():
         path = path / "encoder.pt"
@@ -123,6 +126,8 @@ def load_encoder(path: str | Path) -> tuple[NormalizedEncoder, dict[str, Any]]:
     missing = [k for k in ("encoder_kwargs", "state_dict") if k not in data]
     if missing:
         raise CheckpointError(f"encoder file {path} lacks {missing}")
+    if task is not None and data.get("task") != task:
+        raise ValueError(f"encoder {path} is for {data.get('task')}, not {task}")
     return encoder_from_dict(data), data
 
 
@@ -270,6 +275,19 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
         proprio_dims=tuple(data.get("proprio_dims") or ()),
     )
+
+
+def load_teacher(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
+                 device: str = "cpu") -> PolicyHandle:
+    """:func:`load_policy` of a teacher's policy file (or run directory); a file of another kind, or
+    a teacher for another ``task`` or ``horizon`` (each checked when given), is a
+    :class:`~trakdis.utils.checkpoint.CheckpointError`."""
+    teacher = load_policy(spec, device=device)
+    if teacher.kind != "teacher" or task not in (None, teacher.task) or horizon not in (None, teacher.horizon):
+        expected = "".join([f" for {task}" if task else "", f" (horizon {horizon})" if horizon else ""])
+        raise CheckpointError(f"{teacher.source}: a {teacher.kind} for {teacher.task} (horizon {teacher.horizon}); "
+                              f"expected a teacher{expected}")
+    return teacher
 
 
 # --------------------------------------------------------------------------- image baselines

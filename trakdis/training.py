@@ -1,5 +1,7 @@
-"""The update loop every recipe runs: ``updater`` steps on sampled batches until a counter reaches
-its total, with the log, checkpoint and ``--stop-after`` cadence written once.
+"""The update loops of the recipes: ``updater`` steps on sampled batches until a counter reaches
+its total, with the log, checkpoint and ``--stop-after`` cadence written once
+(:func:`train_updates`), one epoch's shuffled minibatches of a dataset (:func:`shuffled_batches`) and
+a validation pass over a dataset in batches (:func:`eval_batches`).
 
     done = train_updates(run, updater, lambda: buffer.sample(64), state=state, total=1500,
                          log_every=50, checkpoint_every=500)
@@ -8,15 +10,19 @@ its total, with the log, checkpoint and ``--stop-after`` cadence written once.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping, TypeVar
 
+import torch
 from tensordict import TensorDictBase
+from torch import nn
 
 from trakdis.optim import Updater, mean_metrics
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["train_updates"]
+__all__ = ["eval_batches", "shuffled_batches", "train_updates"]
+
+T = TypeVar("T")
 
 
 def train_updates(run: Run, updater: Updater, sample: Callable[[], TensorDictBase], *, state: RunState, total: int,
@@ -52,3 +58,28 @@ def train_updates(run: Run, updater: Updater, sample: Callable[[], TensorDictBas
             state.save()
     bar.close()
     return True
+
+
+def shuffled_batches(data: TensorDictBase, batch_size: int, *, device: str | torch.device = "cpu",
+                     desc: str = "epoch") -> Iterator[TensorDictBase]:
+    """One epoch over ``data`` ``[N]``: minibatches of ``batch_size`` steps (the last one smaller) in
+    an order drawn from torch's global RNG before the first batch, each moved to ``device``, with a
+    progress bar named ``desc``."""
+    order = torch.randperm(data.shape[0])
+    for i in progress(range(0, data.shape[0], batch_size), desc=desc):
+        yield data[order[i : i + batch_size]].to(device)
+
+
+def eval_batches(module: nn.Module, data: TensorDictBase, batch_size: int,
+                 fn: Callable[[TensorDictBase], T] | None = None, *, device: str | torch.device = "cpu") -> list[T]:
+    """``fn(batch)`` (default: ``module(batch)``) for the consecutive batches of ``batch_size`` steps of
+    ``data`` ``[N]``, each moved to ``device``, without gradients and with ``module`` in eval mode
+    (its train/eval mode is restored afterwards): a validation pass."""
+    was_training = module.training
+    module.eval()
+    try:
+        with torch.no_grad():
+            return [(module if fn is None else fn)(data[i : i + batch_size].to(device))
+                    for i in range(0, data.shape[0], batch_size)]
+    finally:
+        module.train(was_training)

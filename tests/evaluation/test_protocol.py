@@ -72,3 +72,43 @@ def test_background_expert_baseline_is_booked_and_cached(tmp_path):
     assert "in a background process" in run.lines[-2] and "cached in" in run.lines[-1]
     cached = evals.expert_baseline(run, None, PhaseTimer(), cache_root=tmp_path)
     assert np.array_equal(cached, res.final_performance)
+
+
+def test_run_snapshot_plays_a_frozen_copy_on_its_own_env_and_closes_it():
+    import dataclasses
+
+    import torch
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import StepCounter, TransformedEnv
+
+    from walk_env import Walk
+
+    @dataclasses.dataclass
+    class WalkHandle:  # what EvalProtocol reads of a PolicyHandle
+        encoder: torch.nn.Module | None = None
+        actor: torch.nn.Module | None = None
+        envs: list = dataclasses.field(default_factory=list)
+
+        @property
+        def uses_pixels(self):
+            return False
+
+        def make_env(self, **kwargs):
+            self.envs.append((kwargs, TransformedEnv(Walk(), StepCounter(max_steps=2)), self.encoder))
+            return self.envs[-1][1]
+
+        def make_policy(self, seed=None):
+            return TensorDictModule(lambda s: torch.full_like(s, 0.5), in_keys=["state"], out_keys=["action"])
+
+    evals, run = EvalProtocol("ClothFold", horizon=2, episodes=1, num_envs=1), FakeRun()
+    for encoder in (None, torch.nn.Linear(1, 1).train()):
+        handle = WalkHandle(encoder=encoder, actor=torch.nn.Linear(1, 1).train())
+        res = evals.run_snapshot(run, handle, step=4, tag="snap", prefix="eval_t", parallel=True)
+        assert res.final_performance.tolist() == [1.0] and run.rows[-1][0] == 4 and "eval_t/std" in run.rows[-1][1]
+        kwargs, env, env_encoder = handle.envs[-1]
+        assert kwargs == {"num_envs": 1, "split": "eval", "parallel": True} and env.is_closed
+        if encoder is None:
+            assert env_encoder is None
+        else:  # a copy, in eval mode; the model in training keeps its mode
+            assert env_encoder is not encoder and not env_encoder.training and encoder.training
+        assert handle.actor.training  # the mode of keep_mode (default: the actor) is restored

@@ -150,3 +150,19 @@ def test_tensorboard_logger_writes_event_files(tmp_path):
     events.Reload()
     assert [e.value for e in events.Scalars("train/loss")] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
     assert pd.read_csv(run.dir / "log.csv")["train/loss"].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+
+
+def test_run_state_save_and_should_stop(tmp_path, capsys):
+    from trakdis.utils.run import RunState
+
+    run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "s", "--no-progress", "--stop-after", "2"])
+    state = RunState(run, {"updates": 0, "rounds": 1}, step_key="updates")
+    assert not state.save_and_should_stop(3, key="rounds", unit="round")  # 1 < --stop-after
+    assert torch.load(run.checkpoint_path, weights_only=False)["counters"]["rounds"] == 1
+    state.update(rounds=2, updates=7)
+    assert state.save_and_should_stop(3, key="rounds", unit="round")
+    assert torch.load(run.checkpoint_path, weights_only=False)["step"] == 7
+    assert "stopping after round 2 (--stop-after); continue with --resume" in capsys.readouterr().out
+    assert not state.save_and_should_stop(2, key="rounds")  # the last round: the run finishes instead
+    assert state.save_and_should_stop(8)  # the step key
+    assert "stopping after updates 7" in capsys.readouterr().out

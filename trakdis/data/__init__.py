@@ -19,7 +19,8 @@ from .dataset import (
     partial_path,
     read_meta,
 )
-from .layout import ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, episode_to_trajectory, real_steps, valid_mask
+from .layout import (ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, encode_trajectories, episode_to_trajectory, real_steps,
+                     split_episodes_train_val, valid_mask)
 from .loading import DataConfig, default_dataset_path, ensure_dataset, ensure_dataset_timed, load_trajectories, make_buffer
 
 __all__ = [
@@ -35,8 +36,10 @@ __all__ = [
     "ACTING_KEYS",
     "REQUIRED_KEYS",
     "STEP_KEYS",
+    "encode_trajectories",
     "episode_to_trajectory",
     "real_steps",
+    "split_episodes_train_val",
     "valid_mask",
     "DataConfig",
     "default_dataset_path",

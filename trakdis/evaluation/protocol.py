@@ -117,17 +117,20 @@ class EvalProtocol:
                    detail=res.rate(), note=note, extra=extra)
         return res
 
-    def run_snapshot(self, run: Any, handle: Any, *, step: int, tag: str, parallel: bool = False,
-                     keep_mode: nn.Module | None = None, desc: str = "eval") -> EpisodeResults:
-        """:meth:`run` on a fresh env that runs a frozen copy of ``handle.encoder`` (an image policy
-        in training: the env's ``EncoderTransform`` freezes what it is given, and a ``ParallelEnv``
-        would pickle it), closed afterwards."""
+    def run_snapshot(self, run: Any, handle: Any, *, step: int, tag: str, prefix: str = "eval", parallel: bool = False,
+                     keep_mode: nn.Module | None = None, state_error_cm: Callable[[Any], dict] | None = None,
+                     desc: str = "eval") -> EpisodeResults:
+        """:meth:`run` on a fresh env that runs a frozen copy of ``handle.encoder`` if it has one (an
+        image policy in training: the env's ``EncoderTransform`` freezes what it is given, and a
+        ``ParallelEnv`` would pickle it), closed afterwards."""
         from trakdis.envs import close_env
 
-        snapshot = dataclasses.replace(handle, encoder=copy.deepcopy(handle.encoder).eval())
+        encoder = None if handle.encoder is None else copy.deepcopy(handle.encoder).eval()
+        snapshot = dataclasses.replace(handle, encoder=encoder)
         env = snapshot.make_env(num_envs=self.num_envs, split="eval", parallel=parallel)
         try:
-            return self.run(run, snapshot, env, step=step, tag=tag, keep_mode=keep_mode, desc=desc)
+            return self.run(run, snapshot, env, step=step, tag=tag, prefix=prefix, keep_mode=keep_mode,
+                            state_error_cm=state_error_cm, desc=desc)
         finally:
             close_env(env)
 

@@ -230,6 +230,8 @@ class RunState(dict):
         ...
         state["updates"] += 1
         state.save()
+        if state.save_and_should_stop(total, key="rounds", unit="round"):   # end of a round
+            return                                                            # --stop-after
 
     ``on_save`` (if set) is called first, to put derived values into the counters.
     ``counters_key=None`` keeps the counters at the checkpoint's top level instead (a counter
@@ -270,3 +272,14 @@ class RunState(dict):
         counters = dict(self) if self.counters_key is None else {self.counters_key: dict(self)}
         return self.run.save_checkpoint({**{k: obj.state_dict() for k, obj in self.objects.items()}, **counters,
                                          "rng": rng_state()}, step=self[self.step_key])
+
+    def save_and_should_stop(self, total: int, *, key: str | None = None, unit: str | None = None) -> bool:
+        """:meth:`save`, then whether the run stops here: ``--stop-after`` reached by ``self[key]``
+        (default: the step key) before ``total``; a stop is announced as ``"stopping after <unit>
+        <n> (--stop-after); continue with --resume"`` (``unit`` defaults to ``key``)."""
+        self.save()
+        key = self.step_key if key is None else key
+        if self.run.should_stop(self[key]) and self[key] < total:
+            self.run.print(f"stopping after {unit or key} {self[key]} (--stop-after); continue with --resume")
+            return True
+        return False
