@@ -34,17 +34,17 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from trakdis.data import DataConfig, default_dataset_path, ensure_dataset_timed, episode_to_trajectory, load_trajectories, make_buffer, valid_mask
-from trakdis.envs import close_env, start_in_background, task_spec
+from trakdis.data import DataConfig, episode_to_trajectory, load_offline_data, make_buffer, valid_mask
+from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import BackgroundEvaluation, EvalProtocol, compare_scores, run_episodes
+from trakdis.evaluation import EvalProtocol, RunEnvs, compare_scores, run_episodes
 from trakdis.modules import DTConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig, mean_metrics
 from trakdis.policies import PolicyHandle, save_policy
 from trakdis.training import train_updates
 from trakdis.transforms import StateNoise, StateNormalizer
-from trakdis.utils.phases import PhaseTimer, available_workers
+from trakdis.utils.phases import available_workers
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -177,24 +177,15 @@ def main(argv=None) -> dict:
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
               f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
     state = RunState(run, {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
-                           "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None,
-                           "phases": {}}, step_key="updates", updater=updater)
-    phases = PhaseTimer(state["phases"])
-    state.on_save = lambda: state.update(phases=phases.state_dict())
+                           "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None},
+                   step_key="updates", phases_key="phases", updater=updater)
+    phases = state.phases
     if not state.resuming:  # 1. the expert data: its states' statistics, its best return
-        pixels = cfg.collect_pixels or (default_dataset_path(cfg.data, task=cfg.task, horizon=cfg.horizon,
-                                                             pixels=True) / "meta.json").exists()
-        dataset = ensure_dataset_timed(cfg.data, phases=phases, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
-                                       pixels=pixels, log=run.print, progress=cfg.progress)
-        trajectories, lengths = load_trajectories(dataset, keys=("state", "action", "reward", "normalized_performance"))
-        trajectories = trajectories.to_tensordict()
+        trajectories, lengths = load_offline_data(cfg.data, phases=phases, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
+                                                  collect_pixels=cfg.collect_pixels, log=run.print, progress=cfg.progress)
         state["normalizer"] = StateNormalizer.fit(trajectories["state"][valid_mask(lengths, trajectories.shape[1])],
                                                   min_scale=cfg.state_scale_floor).state_dict()
-        rets = trajectories["reward"].sum(dim=(-2, -1))
-        final = trajectories["normalized_performance"][torch.arange(len(lengths)), lengths - 1]
-        run.print(f"offline data: {trajectories.shape[0]} episodes from {dataset}; return {rets.mean():.3f} "
-                  f"(best {rets.max():.3f}); final normalized performance {final.mean():.3f}")
-        state["best_return"] = float(rets.max())
+        state["best_return"] = float(trajectories["reward"].sum(dim=(-2, -1)).max())
         if state["buffer_capacity"] is None:
             state["buffer_capacity"] = int(trajectories.shape[0])
     # The DT reads standardised states (buffer windows and acting; noisy ones with --state-noise); data stays raw.
@@ -218,106 +209,69 @@ def main(argv=None) -> dict:
     explore_env = None if state["rounds"] >= cfg.online_rounds else handle.make_env(
         num_envs=cfg.num_envs, split="train", parallel=cfg.parallel, target_return=explore_rtg)
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
-    starting = offline_res = expert_job = offline_job = None
-    try:
+    offline_res = None
+    with RunEnvs(phases, eval_env, explore_env, evals=evals) as envs:  # closes them, cancels unfinished evaluations
         if cfg.eval_expert and state["expert_eval"] is None:  # 2. the scripted expert on the same episodes
-            expert = evals.expert_baseline(run, eval_env, phases, cache_root=cfg.data.root, use_cache=cfg.expert_cache,
-                                           background=cfg.background_eval)
-            expert_job = expert if isinstance(expert, BackgroundEvaluation) else None
-            state["expert_eval"] = None if expert_job else float(np.mean(expert))
+            evals.expert_scores(run, eval_env, phases, cache_root=cfg.data.root, use_cache=cfg.expert_cache,
+                                background=cfg.background_eval, on_scores=lambda s: state.update(expert_eval=float(np.mean(s))))
         # 3. offline pretraining; the env workers start (spawn, imports) on the core that training leaves idle
-        # (with --collector multi_sync these envs only describe the processes' envs: never started)
-        starting = start_in_background(*([eval_env, *([explore_env] if explore_env is not None else [])]
-                                         if cfg.collector == "sync" else []))
+        envs.start_workers(cfg.collector == "sync")  # multi_sync: these envs only describe the processes' envs
         with phases.phase("offline training"):
             if not train_updates(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
                                  total=cfg.offline_updates, log_every=cfg.log_every, desc="offline",
                                  checkpoint_every=cfg.checkpoint_every, log_extra={"phase": 0}):
                 return dict(state)
-        with phases.phase("env worker start (after training)"):  # what training did not hide
-            starting.join()
+        envs.join_workers()
         if state["offline_eval"] is None:
-            if not state.get("offline_policy_saved"):  # once: a resumed run's actor has moved on
-                policy_file(run.dir / "policy_offline.pt")
-                state["offline_policy_saved"] = True
-                state.save()
-            if cfg.background_eval and state["rounds"] < cfg.online_rounds:
-                offline_job = evals.in_background(run.dir / "policy_offline.pt", phases)
-            else:
-                with phases.phase("evaluation (offline teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-                    offline_res = evals.run(run, handle, eval_env, step=state["updates"], tag="after offline pretraining")
-                state.update(offline_eval=float(offline_res.final_performance.mean()),
-                             offline_scores=offline_res.final_performance.tolist())
+            state.once("offline_policy_saved", lambda: policy_file(run.dir / "policy_offline.pt"))  # resumed: moved on
+            background = cfg.background_eval and state["rounds"] < cfg.online_rounds
+            offline_res = evals.evaluate(run, handle, eval_env, phases, "offline teacher", step=state["updates"],
+                                         tag="after offline pretraining", background_step=cfg.offline_updates,
+                                         background=run.dir / "policy_offline.pt" if background else None,
+                                         on_scores=lambda s: state.update(offline_eval=float(s.mean()), offline_scores=s.tolist()))
+            if offline_res is not None:
                 state.save()
         # 4. online fine-tuning: roll out, add to the buffer, update
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
             updater.set_constant_lr(cfg.online_lr if cfg.online_lr is not None else cfg.lr * cfg.min_lr_fraction)
-            try:
-                while state["rounds"] < cfg.online_rounds:
-                    with phases.phase("online rollouts", episodes=cfg.episodes_per_round, workers=cfg.num_envs):
-                        res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
-                                           max_steps=cfg.horizon, deterministic=cfg.exploration == "mean",
-                                           keep_episodes=True, desc="rollout", seed=cfg.seed + 1000 * (state["rounds"] + 1),
-                                           collector=cfg.collector)
-                    actor.train()
-                    kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
-                               for ep in (res.episodes if not cfg.offline_control else ()))
-                    state["rounds"] += 1
-                    with phases.phase("online updates"):
-                        history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
-                                   progress(range(cfg.updates_per_round), desc=f"round {state['rounds']}")]
-                    state["updates"] += cfg.updates_per_round
-                    run.log(state["updates"], {**mean_metrics(history), "phase": 1,
-                                               "online/normalized_performance": float(res.final_performance.mean()),
-                                               "online/return": float(res.returns.mean()), "online/round": state["rounds"],
-                                               "online/kept": kept, "online/buffer_online_fraction": buffer.online_fraction})
-                    run.print(f"round {state['rounds']}/{cfg.online_rounds}: rollout normalized performance "
-                              f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f} ({kept} kept; buffer "
-                              f"{buffer.online_fraction:.0%} online), loss_nll {run.logger.last('train/loss_nll'):.3f}; {res.rate()}")
-                    if cfg.eval_every and state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.online_rounds:
-                        with phases.phase("evaluation (mid-run)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-                            evals.run(run, handle, eval_env, step=state["updates"], tag=f"after round {state['rounds']}")
-                    state.save()
-                    if run.should_stop(state["updates"]):
-                        run.print(f"stopping after {state['updates']} updates (--stop-after); continue with --resume")
-                        return dict(state)
-            finally:
-                close_env(explore_env)
-                explore_env = None
-        if cfg.online_rounds == 0 and offline_res is not None:
-            res = offline_res  # no update since: the same policy on the same episodes
-        else:
-            with phases.phase("evaluation (final teacher)", episodes=cfg.eval_episodes, workers=cfg.num_envs):
-                res = evals.run(run, handle, eval_env, step=state["updates"], tag="after online fine-tuning")
-        if offline_job is not None:
-            off = evals.finish_background(run, offline_job, phases, "offline teacher", step=cfg.offline_updates,
-                                          tag="after offline pretraining")
-            state.update(offline_eval=float(off.final_performance.mean()), offline_scores=off.final_performance.tolist())
-        if expert_job is not None:
-            off = evals.finish_background(run, expert_job, phases, "scripted expert", step=0, tag="scripted expert",
-                                          prefix="eval_expert")
-            state["expert_eval"] = float(off.final_performance.mean())
-    finally:
-        for job in (expert_job, offline_job):
-            if job is not None and not job.done():
-                job.cancel()
-        with phases.phase("env worker shutdown"):
-            try:
-                if starting is not None:  # never hides an error in flight; raises its own otherwise
-                    starting.join(raise_error=sys.exc_info()[1] is None)
-            finally:
-                for env in (eval_env, explore_env):
-                    if env is not None:
-                        close_env(env)
+            while state["rounds"] < cfg.online_rounds:
+                with phases.phase("online rollouts", episodes=cfg.episodes_per_round, workers=cfg.num_envs):
+                    res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
+                                       max_steps=cfg.horizon, deterministic=cfg.exploration == "mean",
+                                       keep_episodes=True, desc="rollout", seed=cfg.seed + 1000 * (state["rounds"] + 1),
+                                       collector=cfg.collector)
+                actor.train()
+                kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
+                           for ep in (res.episodes if not cfg.offline_control else ()))
+                state["rounds"] += 1
+                with phases.phase("online updates"):
+                    history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
+                               progress(range(cfg.updates_per_round), desc=f"round {state['rounds']}")]
+                state["updates"] += cfg.updates_per_round
+                run.log(state["updates"], {**mean_metrics(history), "phase": 1,
+                                           "online/normalized_performance": float(res.final_performance.mean()),
+                                           "online/return": float(res.returns.mean()), "online/round": state["rounds"],
+                                           "online/kept": kept, "online/buffer_online_fraction": buffer.online_fraction})
+                run.print(f"round {state['rounds']}/{cfg.online_rounds}: rollout normalized performance "
+                          f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f} ({kept} kept; buffer "
+                          f"{buffer.online_fraction:.0%} online), loss_nll {run.logger.last('train/loss_nll'):.3f}; {res.rate()}")
+                if cfg.eval_every and state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.online_rounds:
+                    evals.evaluate(run, handle, eval_env, phases, "mid-run", step=state["updates"],
+                                   tag=f"after round {state['rounds']}")
+                if state.save_and_should_stop(cfg.offline_updates + cfg.online_rounds * cfg.updates_per_round, unit="update"):
+                    return dict(state)
+            envs.close(explore_env)  # its workers' cores go to the final evaluation
+        res = offline_res if cfg.online_rounds == 0 and offline_res is not None else evals.evaluate(  # no update since
+            run, handle, eval_env, phases, "final teacher", step=state["updates"], tag="after online fine-tuning")
+        evals.finish_pending(run, phases)  # the offline teacher's and the expert's background evaluations
     state["final_eval"] = float(res.final_performance.mean())
     with phases.phase("files and curves"):  # 5. save
         policy_file(run.dir / "policy.pt")
         state.save()
-        run.finish(columns=[c for c in ("train/loss_nll", "train/entropy", "online/normalized_performance",
-                                        "eval/normalized_performance", "eval_expert/normalized_performance")
-                            if c in run.logger.frame().columns])
+        run.finish(columns=("train/loss_nll", "train/entropy", "online/normalized_performance",
+                            "eval/normalized_performance", "eval_expert/normalized_performance"))
     phases.report(run.print, run.dir / "phases.json", total_wall=time.time() - run.t0, resumed=run.resuming,
                   extra={"num_envs": cfg.num_envs, "parallel": cfg.parallel})
     summary = {"expert": state["expert_eval"], "offline": state["offline_eval"], "online": state["final_eval"]}

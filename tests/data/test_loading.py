@@ -95,3 +95,30 @@ def test_ensure_dataset_timed_books_the_collected_episodes(tmp_path, monkeypatch
     assert len(lines) == 1 and lines[0].startswith("collected 3 episodes in")
     ensure_dataset_timed(cfg, phases=phases, task="ClothFold", horizon=5, seed=0, pixels=False, log=lines.append)
     assert phases.records["dataset collection"]["episodes"] == 3 and len(lines) == 1  # found: nothing collected
+
+
+@pytest.mark.parametrize("with_pixels", [False, True])
+def test_load_offline_data_prefers_an_existing_pixel_dataset_and_prints_its_returns(tmp_path, monkeypatch, with_pixels):
+    import torch
+    from tensordict import TensorDict
+
+    from trakdis.data import load_offline_data, loading
+    from trakdis.utils.phases import PhaseTimer
+
+    cfg = DataConfig(root=str(tmp_path), episodes=2, num_envs=1)
+    if with_pixels:  # found: used as it is, although this run asks for no images
+        _fake_dataset(default_dataset_path(cfg, task="ClothFold", horizon=3, pixels=True), EXPERT_VERSION, horizon=3)
+    asked = []
+    monkeypatch.setattr(loading, "ensure_dataset_timed", lambda cfg, *, pixels, **kw: asked.append(pixels) or tmp_path / "d")
+    steps = TensorDict({"state": torch.zeros(2, 3, 4), "action": torch.zeros(2, 3, 2), "pixels": torch.zeros(2, 3, 1),
+                        "reward": torch.tensor([[[-1.0], [-1.0], [0.0]], [[-0.5], [0.0], [0.0]]]),
+                        "normalized_performance": torch.tensor([[[0.1], [0.2], [0.3]], [[0.5], [0.7], [0.0]]])},
+                       batch_size=[2, 3])
+    monkeypatch.setattr(loading, "load_expert_dataset", lambda path: (steps, {"lengths": torch.tensor([3, 2])}))
+    lines = []
+    trajectories, lengths = load_offline_data(cfg, phases=PhaseTimer(), task="ClothFold", horizon=3, seed=0,
+                                              log=lines.append)
+    assert asked == [with_pixels] and lengths.tolist() == [3, 2]
+    assert set(trajectories.keys()) == {"state", "action", "reward", "normalized_performance"}
+    assert lines == [f"offline data: 2 episodes from {tmp_path / 'd'}; return -1.250 (best -0.500); "
+                     "final normalized performance 0.500"]

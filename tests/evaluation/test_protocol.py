@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from trakdis.evaluation import BackgroundEvaluation, EvalProtocol, compare_scores, log_scores
+from trakdis.evaluation import BackgroundEvaluation, EvalProtocol, RunEnvs, compare_scores, log_scores
 from trakdis.policies import load_policy
 from trakdis.utils.phases import PhaseTimer
 
@@ -112,3 +112,78 @@ def test_run_snapshot_plays_a_frozen_copy_on_its_own_env_and_closes_it():
         else:  # a copy, in eval mode; the model in training keeps its mode
             assert env_encoder is not encoder and not env_encoder.training and encoder.training
         assert handle.actor.training  # the mode of keep_mode (default: the actor) is restored
+
+
+class FakeJob(BackgroundEvaluation):  # no process: only what the protocol calls
+    def __init__(self, name):
+        self.name, self.cancelled = name, False
+
+    def done(self):
+        return False
+
+    def cancel(self):
+        self.cancelled = True
+
+
+def fake_protocol(monkeypatch, finished):
+    from trakdis.evaluation.episodes import EpisodeResults
+
+    evals = EvalProtocol("ClothFold", horizon=3, episodes=2, num_envs=1)
+
+    def results(score):
+        return EpisodeResults(final_performance=np.array([score, score]), returns=np.zeros(2), lengths=np.full(2, 3),
+                              unstable=np.zeros(2, dtype=bool), episodes=[], seconds=1.0, num_envs=1)
+
+    monkeypatch.setattr(evals, "run", lambda run, handle, env, *, step, tag: results(0.5))
+    monkeypatch.setattr(evals, "in_background", lambda spec, phases: FakeJob(str(spec)))
+
+    def finish(run, job, phases, what, *, step, tag, prefix="eval"):
+        finished.append((job.name, what, step, prefix))
+        return results(0.25)
+
+    monkeypatch.setattr(evals, "finish_background", finish)
+    return evals
+
+
+def test_evaluate_now_or_in_the_background_and_finish_the_pending_latest_first(monkeypatch):
+    finished, got = [], []
+    evals = fake_protocol(monkeypatch, finished)
+    monkeypatch.setattr(evals, "expert_baseline", lambda run, env, phases, **kw: FakeJob("expert"))
+    phases = PhaseTimer()
+    res = evals.evaluate(FakeRun(), None, None, phases, "offline teacher", step=3, tag="t",
+                         on_scores=lambda s: got.append(("now", s.tolist())))
+    assert res.final_performance.tolist() == [0.5, 0.5] and got == [("now", [0.5, 0.5])]
+    assert phases.records["evaluation (offline teacher)"]["episodes"] == 2
+    evals.expert_scores(FakeRun(), None, phases, cache_root="x", background=True,
+                        on_scores=lambda s: got.append(("expert", s.tolist())))
+    assert evals.evaluate(FakeRun(), None, None, phases, "offline teacher", step=9, tag="t", background="p.pt",
+                          background_step=6, on_scores=lambda s: got.append(("offline", s.tolist()))) is None
+    assert finished == [] and len(got) == 1
+    evals.finish_pending(FakeRun(), phases)
+    assert finished == [("p.pt", "offline teacher", 6, "eval"), ("expert", "scripted expert", 0, "eval_expert")]
+    assert got[1:] == [("offline", [0.25, 0.25]), ("expert", [0.25, 0.25])]
+    evals.finish_pending(FakeRun(), phases)  # nothing left
+    assert len(finished) == 2
+
+
+def test_expert_scores_known_now_and_run_envs_closing_and_cancelling(monkeypatch):
+    import trakdis.envs
+
+    finished, got, closed = [], [], []
+    evals = fake_protocol(monkeypatch, finished)
+    monkeypatch.setattr(evals, "expert_baseline", lambda run, env, phases, **kw: np.array([0.75, 0.25]))
+    monkeypatch.setattr(trakdis.envs, "close_env", lambda env: closed.append(env))
+    evals.expert_scores(FakeRun(), None, PhaseTimer(), cache_root="x", on_scores=lambda s: got.append(np.mean(s)))
+    assert got == [0.5]
+    phases, a, b = PhaseTimer(), object(), object()
+    with pytest.raises(RuntimeError, match="boom"):
+        with RunEnvs(phases, a, None, b, evals=evals) as envs:
+            envs.start_workers()  # envs without workers: nothing to start
+            envs.join_workers()
+            envs.close(b)
+            envs.close(b)  # closed once
+            evals.evaluate(FakeRun(), None, None, phases, "offline teacher", step=1, tag="t", background="p.pt")
+            job = evals._pending[-1][0]
+            raise RuntimeError("boom")
+    assert closed == [b, a] and job.cancelled and evals._pending == []
+    assert {"env worker start (after training)", "env worker shutdown"} <= set(phases.records)

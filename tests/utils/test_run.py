@@ -166,3 +166,28 @@ def test_run_state_save_and_should_stop(tmp_path, capsys):
     assert not state.save_and_should_stop(2, key="rounds")  # the last round: the run finishes instead
     assert state.save_and_should_stop(8)  # the step key
     assert "stopping after updates 7" in capsys.readouterr().out
+
+
+def test_run_state_phases_and_once_continue_across_a_resume(tmp_path):
+    from trakdis.utils.run import RunState
+
+    args = ["--root", str(tmp_path), "--name", "p", "--no-progress"]
+    run = Run.start("toy", Cfg, args)
+    state = RunState(run, {"updates": 0}, step_key="updates", phases_key="phases")
+    state.phases.add("training", episodes=2, wall=1.0, cpu=0.5)
+    calls = []
+    state.once("written", lambda: calls.append(1))
+    state.once("written", lambda: calls.append(2))
+    assert calls == [1] and state["written"] is True
+    assert torch.load(run.checkpoint_path, weights_only=False)["counters"]["phases"]["training"]["episodes"] == 2
+    resumed = RunState(Run.start("toy", Cfg, [*args, "--resume"]), {"updates": 0}, step_key="updates", phases_key="phases")
+    resumed.once("written", lambda: calls.append(3))  # ran before the resume
+    assert calls == [1] and resumed.phases.episodes == 2
+
+
+def test_finish_draws_only_the_columns_the_log_has(tmp_path):
+    run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "f", "--no-progress"])
+    run.log(1, {"train/loss": 1.0})
+    run.log(2, {"train/loss": 0.5})
+    assert run.finish(columns=("train/loss", "eval/missing")) == run.dir / "curves.png"
+    assert (run.dir / "curves.png").exists()

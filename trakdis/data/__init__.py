@@ -21,7 +21,8 @@ from .dataset import (
 )
 from .layout import (ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, encode_trajectories, episode_to_trajectory, real_steps,
                      split_episodes_train_val, valid_mask)
-from .loading import DataConfig, default_dataset_path, ensure_dataset, ensure_dataset_timed, load_trajectories, make_buffer
+from .loading import (DataConfig, default_dataset_path, ensure_dataset, ensure_dataset_timed, load_offline_data,
+                      load_trajectories, make_buffer)
 
 __all__ = [
     "DATASET_FORMAT",
@@ -45,6 +46,7 @@ __all__ = [
     "default_dataset_path",
     "ensure_dataset",
     "ensure_dataset_timed",
+    "load_offline_data",
     "load_trajectories",
     "make_buffer",
 ]

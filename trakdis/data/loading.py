@@ -19,7 +19,8 @@ from trakdis.utils.phases import PhaseTimer, available_workers
 from .buffer import TrajectoryReplayBuffer
 from .dataset import DatasetError, collect_expert_dataset, load_expert_dataset, partial_path, read_meta
 
-__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed", "load_trajectories", "make_buffer"]
+__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed", "load_offline_data", "load_trajectories",
+           "make_buffer"]
 
 
 @dataclass
@@ -130,6 +131,27 @@ def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tu
             raise KeyError(f"dataset {path} has no {missing}; it has {sorted(steps.keys())}{hint}")
         steps = steps.select(*keys)
     return steps, meta["lengths"]
+
+
+def load_offline_data(cfg: DataConfig, *, phases: PhaseTimer, task: str, horizon: int, seed: int,
+                      keys: Sequence[str] = ("state", "action"), collect_pixels: bool = False,
+                      log: Callable[..., None] = print, progress: bool = True) -> tuple[TensorDict, torch.Tensor]:
+    """The expert dataset of ``cfg`` in memory: ``(steps [episodes, horizon], lengths [episodes])``
+    with ``keys`` and ``"reward"``, ``"normalized_performance"``, after :func:`ensure_dataset_timed`
+    (collected with images if ``collect_pixels`` or if the dataset with images exists already), and
+    a line ``"offline data: <n> episodes from <path>; return <mean> (best <max>); final normalized
+    performance <mean>"``."""
+    pixels = collect_pixels or (default_dataset_path(cfg, task=task, horizon=horizon, pixels=True) / "meta.json").exists()
+    dataset = ensure_dataset_timed(cfg, phases=phases, task=task, horizon=horizon, seed=seed, pixels=pixels, log=log,
+                                   progress=progress)
+    keys = list(dict.fromkeys([*keys, "reward", "normalized_performance"]))
+    trajectories, lengths = load_trajectories(dataset, keys=keys)
+    trajectories = trajectories.to_tensordict()
+    rets = trajectories["reward"].sum(dim=(-2, -1))
+    final = trajectories["normalized_performance"][torch.arange(len(lengths)), lengths - 1]
+    log(f"offline data: {trajectories.shape[0]} episodes from {dataset}; return {rets.mean():.3f} "
+        f"(best {rets.max():.3f}); final normalized performance {final.mean():.3f}")
+    return trajectories, lengths
 
 
 def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float, keys: Sequence[str],

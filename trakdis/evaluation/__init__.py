@@ -16,7 +16,7 @@ from .episodes import (
     worker_env_fns,
     write_summary_table,
 )
-from .protocol import EvalProtocol, compare_scores, log_scores
+from .protocol import EvalProtocol, RunEnvs, compare_scores, log_scores
 from .expert_scores import (
     ExpertScoreError,
     expert_score_key,
@@ -30,6 +30,7 @@ __all__ = [
     "worker_env_fns",
     "BackgroundEvaluation",
     "EvalProtocol",
+    "RunEnvs",
     "compare_scores",
     "log_scores",
     "EpisodeResults",

@@ -7,6 +7,19 @@ reach the run's CSV log and output (written once for every recipe).
     job = evals.in_background("runs/x/policy_offline.pt", phases)                    # beside training
     res = evals.finish_background(run, job, phases, "offline teacher", step=1500, tag="...")
 
+A recipe that evaluates now or beside training, as its options say, lets the protocol keep the
+background jobs and finish them at the end; :class:`RunEnvs` owns the envs and those jobs::
+
+    with RunEnvs(phases, eval_env, explore_env, evals=evals) as envs:     # closed/cancelled on exit
+        evals.expert_scores(run, eval_env, phases, cache_root="datasets", background=True, on_scores=...)
+        envs.start_workers()                                               # beside training
+        ...                                                                # train
+        envs.join_workers()
+        evals.evaluate(run, handle, eval_env, phases, "offline teacher", step=1500, tag="...",
+                       background="runs/x/policy_offline.pt", on_scores=...)
+        ...
+        evals.finish_pending(run, phases)                                  # logs, calls on_scores
+
 Every evaluation replays the same configurations (the same ``seed``): a run's scores are
 comparable, and the difference of two policies' scores is a paired one.
 """
@@ -14,7 +27,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -27,7 +40,7 @@ from .background import BackgroundEvaluation
 from .episodes import EpisodeResults, paired_difference, run_episodes, standard_error, summarize
 from .expert_scores import expert_score_key, expert_score_path, read_expert_scores, write_expert_scores
 
-__all__ = ["EvalProtocol", "compare_scores", "log_scores"]
+__all__ = ["EvalProtocol", "RunEnvs", "compare_scores", "log_scores"]
 
 
 def log_scores(run: Any, step: int, prefix: str, tag: str, scores: Sequence[float] | np.ndarray,
@@ -88,6 +101,7 @@ class EvalProtocol:
     """log and print the mean return beside the scores (:func:`log_scores` with ``returns``)"""
     collector: str = "sync"
     """how :func:`~trakdis.evaluation.run_episodes` steps the envs (``"sync"`` or ``"multi_sync"``)"""
+    _pending: list = field(default_factory=list, init=False, repr=False, compare=False)
 
     def run(self, run: Any, handle: Any, env: Any, *, step: int, tag: str, prefix: str = "eval",
             keep_mode: nn.Module | None = None, state_error_cm: Callable[[Any], dict] | None = None,
@@ -157,7 +171,50 @@ class EvalProtocol:
             self._cache(run, job.cache_path, job.cache_key, res)
         return res
 
+    def evaluate(self, run: Any, handle: Any, env: Any, phases: PhaseTimer, what: str, *, step: int, tag: str,
+                 background: str | Path | None = None, background_step: int | None = None,
+                 on_scores: Callable[[np.ndarray], Any] | None = None) -> EpisodeResults | None:
+        """:meth:`run` as the phase ``"evaluation (<what>)"`` of ``phases``; ``on_scores`` receives the
+        per-episode scores. With ``background`` (the policy's file), the episodes run in a background
+        process instead (:meth:`in_background`; returns None) and :meth:`finish_pending` logs them
+        at ``background_step`` (default: ``step``) and calls ``on_scores``."""
+        if background is not None:
+            job = self.in_background(background, phases)
+            self._pending.append((job, what, step if background_step is None else background_step, tag, "eval", on_scores))
+            return None
+        with phases.phase(f"evaluation ({what})", episodes=self.episodes, workers=self.num_envs):
+            res = self.run(run, handle, env, step=step, tag=tag)
+        if on_scores is not None:
+            on_scores(res.final_performance)
+        return res
+
+    def finish_pending(self, run: Any, phases: PhaseTimer) -> None:
+        """:meth:`finish_background` for the jobs of :meth:`evaluate` and :meth:`expert_scores` still
+        pending, the latest first, each followed by its ``on_scores``."""
+        while self._pending:
+            job, what, step, tag, prefix, on_scores = self._pending.pop()
+            res = self.finish_background(run, job, phases, what, step=step, tag=tag, prefix=prefix)
+            if on_scores is not None:
+                on_scores(res.final_performance)
+
+    def cancel_pending(self) -> None:
+        """Stop the pending background jobs (their scores are lost)."""
+        while self._pending:
+            job = self._pending.pop()[0]
+            if not job.done():
+                job.cancel()
+
     # ------------------------------------------------------------------ the scripted expert
+    def expert_scores(self, run: Any, env: Any, phases: PhaseTimer, *, cache_root: str | Path, use_cache: bool = True,
+                      background: bool = False, on_scores: Callable[[np.ndarray], Any] | None = None) -> None:
+        """:meth:`expert_baseline`, its scores passed to ``on_scores``: now, or (measured in the
+        background) by :meth:`finish_pending`."""
+        scores = self.expert_baseline(run, env, phases, cache_root=cache_root, use_cache=use_cache, background=background)
+        if isinstance(scores, BackgroundEvaluation):
+            self._pending.append((scores, "scripted expert", 0, "scripted expert", "eval_expert", on_scores))
+        elif on_scores is not None:
+            on_scores(scores)
+
     def expert_baseline(self, run: Any, env: Any, phases: PhaseTimer, *, cache_root: str | Path,
                         use_cache: bool = True, background: bool = False) -> np.ndarray | BackgroundEvaluation:
         """The scripted expert's scores on these episodes, logged under ``eval_expert/`` at step 0:
@@ -190,3 +247,53 @@ class EvalProtocol:
     def _cache(run: Any, path: Path, key: dict, res: EpisodeResults) -> None:
         write_expert_scores(path, key, res.final_performance, returns=res.returns, seconds=res.seconds)
         run.print(f"scripted expert's scores cached in {path} (later runs of this configuration reuse them)")
+
+
+class RunEnvs:
+    """The envs of a run's evaluations and rollouts (``None`` s are skipped), and the background jobs
+    pending in ``evals``, owned for a ``with`` block: :meth:`start_workers` starts their worker
+    processes in a thread (beside training), :meth:`join_workers` waits for them as the phase ``"env
+    worker start (after training)"``, :meth:`close` closes one early; on exit the pending jobs are
+    cancelled and the envs closed, as the phase ``"env worker shutdown"`` (a failed start is raised
+    there unless another error is in flight)."""
+
+    def __init__(self, phases: PhaseTimer, *envs: Any, evals: EvalProtocol | None = None):
+        self.phases, self.evals = phases, evals
+        self.envs = [env for env in envs if env is not None]
+        self._starting = None
+
+    def start_workers(self, start: bool = True) -> None:
+        """Start the envs' workers in a thread (``start=False``: none, e.g. envs that only describe
+        a collector's; :meth:`join_workers` is still timed)."""
+        from trakdis.envs import start_in_background
+
+        self._starting = start_in_background(*(self.envs if start else ()))
+
+    def join_workers(self) -> None:
+        """Wait for :meth:`start_workers` (what training did not hide), raising a failure."""
+        with self.phases.phase("env worker start (after training)"):
+            self._starting.join()
+
+    def close(self, env: Any) -> None:
+        """Close ``env`` now (if owned)."""
+        from trakdis.envs import close_env
+
+        if any(owned is env for owned in self.envs):
+            self.envs = [owned for owned in self.envs if owned is not env]
+            close_env(env)
+
+    def __enter__(self) -> "RunEnvs":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        from trakdis.envs import close_env
+
+        if self.evals is not None:
+            self.evals.cancel_pending()
+        with self.phases.phase("env worker shutdown"):
+            try:
+                if self._starting is not None:  # never hides an error in flight; raises its own otherwise
+                    self._starting.join(raise_error=exc is None)
+            finally:
+                for env in self.envs:
+                    close_env(env)

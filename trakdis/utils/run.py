@@ -33,7 +33,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Mapping, Optional, Sequence
+from typing import Any, Callable, Literal, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
@@ -191,12 +191,15 @@ class Run:
         print(f"[{self.recipe} {time.time() - self.t0:7.1f}s]", *args, flush=True)
 
     def finish(self, *, columns: Sequence[str] | None = None) -> Path | None:
-        """Flush the log and write ``curves.png`` (returns its path, or None without a log)."""
+        """Flush the log and write ``curves.png`` (returns its path, or None without a log): the
+        curves of ``columns`` that the log has (default: every numeric column)."""
         if self._backend is not None:
             self._backend.close()
             self._backend = None
         if self._logger is None and not self.log_path.exists():
             return None
+        if columns is not None:
+            columns = [c for c in columns if c in self.logger.frame().columns]
         self.logger.close()
         try:
             return plot_csv(self.log_path, self.dir / "curves.png", columns=columns)
@@ -233,13 +236,15 @@ class RunState(dict):
         if state.save_and_should_stop(total, key="rounds", unit="round"):   # end of a round
             return                                                            # --stop-after
 
-    ``on_save`` (if set) is called first, to put derived values into the counters.
+    ``on_save`` (if set) is called first, to put derived values into the counters. With
+    ``phases_key``, ``self.phases`` is a :class:`~trakdis.utils.phases.PhaseTimer` that continues the
+    counter ``phases_key`` (a resumed run's time per phase) and is saved into it.
     ``counters_key=None`` keeps the counters at the checkpoint's top level instead (a counter
     missing from a checkpoint keeps its initial value).
     """
 
     def __init__(self, run: Run, counters: Mapping[str, Any], *, step_key: str, counters_key: str | None = "counters",
-                 **objects: Any):
+                 phases_key: str | None = None, **objects: Any):
         super().__init__(counters)
         self.run, self.step_key, self.counters_key, self.objects = run, step_key, counters_key, objects
         self.on_save = None
@@ -249,6 +254,11 @@ class RunState(dict):
                 self.update({k: self.checkpoint[k] for k in counters if k in self.checkpoint})
             else:
                 self.update(self.checkpoint[counters_key])
+        self.phases_key, self.phases = phases_key, None
+        if phases_key is not None:
+            from .phases import PhaseTimer
+
+            self.phases = PhaseTimer(self.setdefault(phases_key, {}))
 
     @property
     def resuming(self) -> bool:
@@ -267,11 +277,21 @@ class RunState(dict):
             set_rng_state(self.checkpoint["rng"])
 
     def save(self) -> Path:
+        if self.phases is not None:
+            self[self.phases_key] = self.phases.state_dict()
         if self.on_save is not None:
             self.on_save()
         counters = dict(self) if self.counters_key is None else {self.counters_key: dict(self)}
         return self.run.save_checkpoint({**{k: obj.state_dict() for k, obj in self.objects.items()}, **counters,
                                          "rng": rng_state()}, step=self[self.step_key])
+
+    def once(self, key: str, fn: Callable[[], Any]) -> None:
+        """``fn()`` unless the counter ``key`` says it ran (in this run, or the run resumed): then
+        the counter is set and the state saved (e.g. a file written from the model as it is now)."""
+        if not self.get(key):
+            fn()
+            self[key] = True
+            self.save()
 
     def save_and_should_stop(self, total: int, *, key: str | None = None, unit: str | None = None) -> bool:
         """:meth:`save`, then whether the run stops here: ``--stop-after`` reached by ``self[key]``
