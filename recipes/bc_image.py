@@ -62,7 +62,7 @@ class BCImageConfig(OptimConfig, RunConfig):
     eval_episodes: int = 20
     """evaluation episodes (eval split)"""
     eval_every: int = 10
-    """evaluate every N epochs (and at the end)"""
+    """evaluate every N epochs (and at the end; 0: only then)"""
     num_envs: int = 2
     """environments stepped together"""
     parallel: bool = False
@@ -118,7 +118,7 @@ def main(argv=None) -> dict:
         run.log(state["epoch"], {**mean_metrics(history), **validate()})
         run.print(f"epoch {state['epoch']}/{cfg.epochs}: loss_bc {run.logger.last('train/loss_bc'):.4f}, "
                   f"action MSE {run.logger.last('train/action_mse'):.4f}")
-        if state["epoch"] % cfg.eval_every == 0 and state["epoch"] < cfg.epochs:
+        if cfg.eval_every and state["epoch"] % cfg.eval_every == 0 and state["epoch"] < cfg.epochs:
             evaluate()
         if state.save_and_should_stop(cfg.epochs, unit="epoch"):
             return dict(state)

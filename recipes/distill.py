@@ -104,7 +104,7 @@ class DistillConfig(OptimConfig, RunConfig):
     eval_episodes: int = 10
     """evaluation episodes (eval split)"""
     eval_every: int = 5
-    """evaluate every N rounds (and before training and at the end)"""
+    """evaluate every N rounds (and before training and at the end; 0: only then)"""
     eval_teacher: bool = True
     """also evaluate the teacher on the evaluation episodes"""
     num_envs: int = 2
@@ -238,7 +238,7 @@ def main(argv=None) -> dict:
             key = "train/loss_distill" if cfg.distill else "train/loss_nll"
             run.print(f"round {state['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
                       + "".join(f", rollout ({k.split('/')[1].split('_')[0]}) {v:.3f}" for k, v in rollout_metrics.items()))
-            if state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.rounds:
+            if cfg.eval_every and state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.rounds:
                 evaluate(f"student after round {state['rounds']}")
             if state.save_and_should_stop(cfg.rounds, key="rounds", unit="round"):
                 return dict(state)

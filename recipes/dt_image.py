@@ -69,7 +69,7 @@ class DTImageConfig(OptimConfig, RunConfig):
     eval_episodes: int = 20
     """evaluation episodes (eval split)"""
     eval_every: int = 500
-    """evaluate every N updates (and at the end)"""
+    """evaluate every N updates (and at the end; 0: only then)"""
     log_every: int = 50
     """log training metrics every N updates"""
     checkpoint_every: int = 250
@@ -123,7 +123,7 @@ def main(argv=None) -> dict:
                          total=cfg.updates, log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
                          on_log=lambda u: run.print(f"update {u}/{cfg.updates}: loss_nll "
                                                     f"{run.logger.last('train/loss_nll'):.3f}"),
-                         on_update=lambda u: evaluate(u) if u % cfg.eval_every == 0 and u < cfg.updates else None):
+                         on_update=lambda u: evaluate(u) if cfg.eval_every and u % cfg.eval_every == 0 and u < cfg.updates else None):
         return dict(state)
     if state["final_eval"] is None:
         state["final_eval"] = evaluate(state["updates"])

@@ -4,6 +4,7 @@ import time
 
 import pytest
 import torch
+from torchrl.envs.utils import check_env_specs
 
 from trakdis.envs import close_env, make_batched_env
 from trakdis.envs.batched import SleepWaitParallelEnv
@@ -17,6 +18,8 @@ def test_parallel_batched_env_matches_serial():
         try:
             torch.manual_seed(0)
             rollouts.append(env.rollout(4, break_when_any_done=False))
+            if parallel:
+                check_env_specs(env)  # the shared buffers hold what the specs say
         finally:
             close_env(env)
     serial, parallel = rollouts

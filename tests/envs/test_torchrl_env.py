@@ -81,15 +81,3 @@ def test_parallel_env_and_collector():
 def test_unknown_task():
     with pytest.raises(ValueError, match="expected one of"):
         make_env("ClothFlip")
-
-
-def test_parallel_env_without_shared_buffers():
-    """``use_buffers=False`` (recommended on machines with few cores, see docs/tasks.md) works too."""
-    env = ParallelEnv(2, functools.partial(make_env, "ClothFoldDiagonalUnpinned", horizon=3),
-                      use_buffers=False, mp_start_method="spawn")
-    try:
-        check_env_specs(env)
-        td = env.rollout(4, ExpertPolicy("ClothFoldDiagonalUnpinned"), break_when_any_done=False)
-        assert td["step_count"][1].squeeze(-1).tolist() == [0, 1, 2, 0]
-    finally:
-        env.close()

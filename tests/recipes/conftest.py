@@ -80,16 +80,19 @@ def dataset(workdir) -> Path:
 
 def online_dt_args(name: str, *extra: str) -> list:
     """The tiny online_dt configuration; evaluations in this process unless ``--background-eval`` is
-    in ``extra`` (a background process costs seconds to start: the teacher fixture covers it)."""
+    in ``extra`` (a background process costs seconds to start: the teacher fixture covers it), and
+    envs stepped in turn unless ``--parallel`` is (worker processes cost seconds to start; the teacher
+    fixture uses them, and --no-parallel plays the same episodes: test_online_dt_serial_envs...)."""
     background = [] if "--background-eval" in extra else ["--no-background-eval"]
+    parallel = [] if {"--parallel", "--no-parallel"} & set(map(str, extra)) else ["--no-parallel"]
     return ["--name", name, "--horizon", HORIZON, *DATA, *TINY_DT, "--offline-updates", 6, "--online-rounds", 2,
             "--episodes-per-round", 2, "--updates-per-round", 3, "--eval-episodes", 2, "--eval-every", 1,
-            "--log-every", 2, "--checkpoint-every", 2, *background, *extra]
+            "--log-every", 2, "--checkpoint-every", 2, *background, *parallel, *extra]
 
 
 @pytest.fixture(scope="session")
 def teacher(workdir, dataset) -> Path:
-    run_recipe(workdir, "online_dt", *online_dt_args("teacher", "--background-eval"))
+    run_recipe(workdir, "online_dt", *online_dt_args("teacher", "--background-eval", "--parallel"))
     return workdir / "runs" / "online_dt" / "teacher"
 
 

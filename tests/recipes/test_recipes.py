@@ -191,14 +191,14 @@ def test_distill_ablations(workdir, teacher, encoder):
 def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     # DAgger's mixture: the teacher drives the first round, the student the last
     run_recipe(workdir, "distill", *distill_args("mixed", "--act", "mixed", "--teacher-context", "step",
-                                                  "--no-eval-teacher"))
+                                                  "--no-eval-teacher", "--eval-every", 0))
     frame = read_log(workdir / "runs" / "distill" / "mixed")
     rounds = frame[frame["round"].notna()]
     assert rounds["rollout/teacher_normalized_performance"].notna().tolist() == [True, False]
     assert rounds["rollout/student_normalized_performance"].notna().tolist() == [False, True]
     # the expert dataset alone, with the teacher's labels
     out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
-                                                        "--no-eval-teacher", *DATA))
+                                                        "--no-eval-teacher", "--eval-every", 0, *DATA))
     assert "--expert-data" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "offline")
     assert frame["train/loss_distill"].notna().sum() == 2 and not any(c.startswith("rollout/") for c in frame.columns)
@@ -302,7 +302,7 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     """recipes/pipeline.py: teacher, encoder, student and the three evaluations, then one table;
     a second call finds every stage's output and only rebuilds the table."""
     # --no-parallel: the same numbers (test_online_dt_serial_envs...), without starting worker processes
-    teacher = " ".join(map(str, [*online_dt_args("unused")[2:], "--no-parallel"]))
+    teacher = " ".join(map(str, online_dt_args("unused")[2:]))
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
                                  "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--student-rounds", 1,
                                  "--student-episodes", 2, "--student-epochs", 1]))
