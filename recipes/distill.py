@@ -3,28 +3,8 @@
     python recipes/distill.py                                  # latest teacher + latest encoder
     python recipes/distill.py --teacher runs/online_dt/A --encoder runs/train_encoder/B
     python recipes/distill.py --no-weight-copy                 # ablation No-Pretrain
-    python recipes/distill.py --no-distill                     # ablation No-Distill (imitate the expert data)
-    python recipes/distill.py --state-noise 1e-3               # train with noisy state estimates
 
-1. The student has the teacher's architecture and starts as a copy of its weights
-   (``--no-weight-copy``: fresh weights); it reads ``"state_estimate"`` = encoder(pixels).
-   Teacher and encoder are frozen.
-2. Distillation data: the expert dataset's episodes (``--data.*``, the teacher's own training
-   data), their images through the encoder, their true states for the teacher; optionally
-   ``--episodes-per-round`` rollouts per round on the train split (by the teacher, the student
-   with ``--act student``, or DAgger's decaying mixture with ``--act mixed``), every step keeping
-   both the true state and the estimate. ``--no-expert-data`` uses the rollouts alone (the paper).
-3. ``--updates-per-round`` updates of the distillation loss, the teacher reading the true state:
-   the student's negative log-likelihood of the teacher's action (``--loss-function nll``, the
-   paper's, default) or the squared error of the two mean actions (``mse``). ``--no-distill``
-   replaces the teacher's labels with the expert dataset's actions (ablation No-Distill).
-4. Evaluation on the eval split (mean action) before training, every ``--eval-every`` rounds and
-   at the end; the teacher is evaluated on the same episodes for reference.
-
-The defaults are the arm measured not to lower the weight copy (docs/recipes/distill.md).
-
-Writes ``runs/distill/<name>/`` with ``config.json``, ``log.csv``, ``curves.png``,
-``checkpoint.pt`` (resume) and ``policy.pt`` (student + encoder, for evaluate.py).
+Steps, ablations, outputs (``runs/distill/<name>/``), options and measurements: docs/recipes/distill.md.
 """
 from __future__ import annotations
 
@@ -38,8 +18,8 @@ from trakdis.data import (DataConfig, encode_trajectories, ensure_dataset, episo
 from trakdis.envs import close_env
 from trakdis.evaluation import EvalProtocol, run_episodes
 from trakdis.optim import OptimConfig, mean_metrics
-from trakdis.policies import load_encoder, load_teacher, save_policy, weight_copied_student
-from trakdis.transforms import ProprioceptionOverride
+from trakdis.policies import load_encoder, load_teacher, weight_copied_student
+from trakdis.transforms import ProprioceptionOverride, chain
 from trakdis.utils.logger import latest_run_file
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig, RunState
@@ -60,24 +40,17 @@ class DistillConfig(OptimConfig, RunConfig):
     state_noise: float = 0.0
     """std of Gaussian noise added to the estimated state while training (robustness)"""
     proprio_pickers: bool = False
-    """take the picker positions of the student's state from proprioception (the true state)
-    instead of the encoder (a deviation from the paper's image-only student)"""
+    """take the student's picker positions from proprioception (the true state), not the encoder"""
     act: Literal["student", "teacher", "mixed"] = "teacher"
-    """who acts in the training rollouts: the teacher (its labels are its own actions, on its own
-    history), the student (DAgger), or both (DAgger's mixture: the teacher's share of each round's
-    episodes falls linearly from all in the first round to none in the last)"""
+    """who acts in the training rollouts: the teacher, the student (DAgger) or DAgger's decaying mixture"""
     teacher_context: Literal["window", "step"] = "window"
-    """what the teacher reads to label a step: the whole window (the acting policy's action history
-    included) or that step's tokens alone (labels independent of who acted; see DistillationLoss)"""
+    """what the teacher reads to label a step: the whole window or that step's tokens alone"""
     expert_data: bool = True
-    """distil on the expert dataset's episodes (--data.*, the teacher's own training data): its images
-    through the frozen encoder, the teacher reading its true states; return-to-go is then the
-    hindsight return for all windows"""
+    """distil on the expert dataset's episodes (--data.*): their images through the encoder, their true states"""
     rounds: int = 10
     """rounds of (roll out, update); --no-distill: rounds of updates only"""
     episodes_per_round: int = 0
-    """episodes rolled out per round and added to the distillation data (0: the expert dataset only;
-    rollouts were measured to lower the student, docs/recipes/distill.md)"""
+    """episodes rolled out per round and added to the distillation data (0: the expert dataset only)"""
     updates_per_round: int = 50
     """updates per round"""
     batch_size: int = 64
@@ -87,12 +60,9 @@ class DistillConfig(OptimConfig, RunConfig):
     warmup_steps: int = 20
     """linear learning-rate warm-up (updates)"""
     loss_function: Literal["nll", "mse"] = "nll"
-    """distillation loss: the student's NLL of the teacher's action (the paper), or the squared
-    error of the two mean actions (see DistillationLoss)"""
+    """distillation loss: the student's NLL of the teacher's action (the paper), or the squared error of the means"""
     return_to_go: Literal["acting", "hindsight"] = "acting"
-    """return-to-go of the distillation windows, read by teacher and student alike: the countdown
-    the acting policy was conditioned on in the rollout, or the hindsight return the rollout reached
-    (relabelled at sampling time, as in DT training)"""
+    """return-to-go of the rollouts' windows: the acting policy's countdown, or the hindsight return reached"""
     kl_coef: float = 0.0
     """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
     buffer_capacity: int = 200
@@ -171,16 +141,11 @@ def main(argv=None) -> dict:
     if normalizer is not None:
         steps.append(normalizer)
 
-    def transform(td):
-        for step in steps:
-            td = step(td)
-        return td
-
     if cfg.episodes_per_round < 0 or (cfg.distill and cfg.episodes_per_round == 0 and not cfg.expert_data):
         raise ValueError(f"--episodes-per-round {cfg.episodes_per_round}: distillation needs rollouts (>= 1) or "
                          f"--expert-data")
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
-                         transform=transform, early_windows=cfg.early_windows,
+                         transform=chain(*steps), early_windows=cfg.early_windows,
                          relabel_return_to_go=not cfg.distill or cfg.expert_data or cfg.return_to_go == "hindsight")
     state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}, step_key="updates",
                      updater=updater, buffer=buffer)
@@ -248,11 +213,9 @@ def main(argv=None) -> dict:
         for env in roll_envs:
             close_env(env)
     state["final_eval"] = final
-    save_policy(run.dir / "policy.pt", kind="student", task=task, horizon=horizon, dt_config=dt_cfg, actor=student,
-                observation_key="state_estimate", target_return=teacher.target_return, rtg_scale=teacher.rtg_scale,
-                env_kwargs=teacher.env_kwargs, encoder_file=enc_file, normalizer=normalizer,
-                extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
-                       "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
+    student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
+                        extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
+                               "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
     state.save()
     run.finish()
     teacher_eval = float("nan") if state["teacher_eval"] is None else state["teacher_eval"]

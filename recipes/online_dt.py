@@ -1,28 +1,11 @@
 """The privileged teacher: a Decision Transformer on the true reduced state, trained offline on
 expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in TraKDis.
 
-    python recipes/online_dt.py                       # ClothFold (time per phase: docs/recipes/online_dt.md)
+    python recipes/online_dt.py                       # ClothFold
     python recipes/online_dt.py --preset paper        # the paper's model and optimiser (slow on a CPU)
     python recipes/online_dt.py --resume              # continue the latest run after a kill
 
-1. Expert data: ``--data.path DIR``, or ``datasets/<task>_<N>ep_h<horizon>_noise<s>_px32`` collected
-   with the scripted expert (``--data.episodes N``, action noise ``--data.expert-noise``) if missing.
-2. Offline pretraining: ``--offline-updates`` updates on windows of the trajectory buffer.
-3. Online fine-tuning: ``--online-rounds`` rounds of [roll out ``--episodes-per-round`` episodes
-   (``--exploration mean|sample``) with the return-to-go ``--exploration-rtg``, add them to the
-   buffer (``--buffer-replacement``: a rollout replaces the lowest-return trajectory if it beats
-   it, or the oldest one as in Online DT), ``--updates-per-round`` updates].
-4. Evaluation (mean action, eval split, return-to-go ``--eval-rtg``, ``--eval-episodes`` episodes)
-   after offline pretraining and at the end (and every ``--eval-every`` rounds if asked); the
-   scripted expert plays the same episodes once, its scores cached in
-   ``<data.root>/expert_scores/`` for later runs (``--no-expert-cache``: measure again).
-
-Every batch of episodes (collection, evaluation, online rollouts) runs on ``--num-envs``
-environments in worker processes (``ParallelEnv``; default: one per available core, at most 2).
-The run ends with a table of the phases: wall and CPU seconds, episodes simulated.
-
-Writes ``runs/online_dt/<name>/``: ``config.json``, ``log.csv``, ``curves.png``,
-``checkpoint.pt`` (resume), ``policy_offline.pt`` and ``policy.pt`` (for evaluate.py/distill.py).
+Steps, outputs (``runs/online_dt/<name>/``), options and measurements: docs/recipes/online_dt.md.
 """
 from __future__ import annotations
 
@@ -41,7 +24,7 @@ from trakdis.evaluation import EvalProtocol, RunEnvs, compare_scores, run_episod
 from trakdis.modules import DTConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig, mean_metrics
-from trakdis.policies import PolicyHandle, save_policy
+from trakdis.policies import PolicyHandle
 from trakdis.training import train_updates
 from trakdis.transforms import StateNoise, StateNormalizer
 from trakdis.utils.phases import available_workers
@@ -62,8 +45,7 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     model: DTConfig = field(default_factory=DTConfig)
     """Decision Transformer"""
     min_lr_fraction: float = 0.1
-    """the learning rate decays (cosine) from --lr to this fraction of it by the end of offline
-    pretraining (1: constant after the warm-up, as in ODT)"""
+    """cosine decay of the learning rate to this fraction of --lr by the end of pretraining (1: constant)"""
     online_lr: Optional[float] = None
     """constant learning rate of the online phase (default: the last offline one, --lr x --min-lr-fraction)"""
     batch_size: int = 64
@@ -73,77 +55,51 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     learn_temperature: bool = False
     """learn the entropy temperature toward a target entropy of -action_dim (Online DT)"""
     state_scale_floor: float = 1e-3
-    """lower bound (metres) of the state normaliser's per-dimension scale. A near-constant
-    coordinate (a corner's height) divided by a tiny scale magnifies a small estimation error into
-    many standard units; 0.02 (about one pixel of the 32x32 camera) was tried for the student and
-    is not the default: on ClothFold it did not make the teacher robust to 1 cm of state noise
-    (docs/recipes/distill.md)"""
+    """lower bound (metres) of the state normaliser's per-dimension scale"""
     state_noise: float = 0.0
-    """std (metres) of Gaussian noise added to the states of every training window (the acting
-    state stays exact): a teacher that has seen imprecise states can be copied into a student that
-    reads an image encoder's estimates (docs/recipes/distill.md)"""
+    """std (metres) of Gaussian noise on the states of every training window (the acting state stays exact)"""
     rtg_scale: float = 1.0
     """return-to-go scale (rewards and targets are multiplied by it)"""
     buffer_capacity: Optional[int] = None
-    """trajectories in the replay buffer (default: as many as the offline dataset has, so every
-    rollout competes with a demonstration; Online DT: 1000)"""
+    """trajectories in the replay buffer (default: as many as the offline dataset has)"""
     buffer_replacement: Literal["oldest", "lowest_return"] = "lowest_return"
-    """which trajectory a rollout replaces once the buffer is full: the lowest-return one, and only
-    if the rollout's return is higher (rollouts worse than every stored trajectory are dropped), or
-    the oldest (Online DT: the lowest-return offline ones go first, then first-in first-out)"""
+    """which trajectory a rollout replaces in a full buffer: the lowest-return one if it beats it, or the oldest"""
     early_windows: bool = True
-    """also sample windows that begin before an episode's first step, so its first K-1 steps are
-    trained as often as the others (the DT/ODT reference: --no-early-windows)"""
+    """also sample windows that begin before an episode's first step (the DT/ODT reference: --no-early-windows)"""
     offline_updates: int = 1500
     """offline pretraining updates"""
     online_rounds: int = 8
     """online rounds (roll out, add to the buffer, update)"""
     episodes_per_round: int = 8
-    """episodes rolled out per online round (sampled actions, train split)"""
+    """episodes rolled out per online round (train split; their actions: --exploration)"""
     updates_per_round: int = 150
     """updates after each online rollout"""
     exploration_rtg: Optional[float] = None
     """initial return-to-go of the online rollouts (default: the evaluation target)"""
     offline_control: bool = False
-    """run the online schedule (rollouts, updates, evaluations) but never add the rollouts to the
-    buffer: the offline-only control with the same number of updates, to tell what the online
-    data changed from what more training changed"""
+    """run the online schedule but never add the rollouts to the buffer (the offline-only control)"""
     exploration: Literal["mean", "sample"] = "mean"
-    """actions of the online rollouts: the policy's mean, or samples as in Online DT (on ClothFold,
-    sampled rollouts scored ~0 while the mean scored ~0.4: one flipped grasp drops the cloth)"""
+    """actions of the online rollouts: the policy's mean, or samples as in Online DT"""
     eval_rtg: Optional[float] = None
-    """initial return-to-go at evaluation (default: the best return of the offline data; the paper
-    uses -1 on SoftGym's reward scale)"""
+    """initial return-to-go at evaluation (default: the best return of the offline data)"""
     eval_episodes: int = 30
-    """evaluation episodes (eval split; the same configurations for every evaluation of a run, so the
-    online gain is a paired difference; standard error of a teacher's score 0.05-0.08 at 30, printed
-    with every score); the paper uses 100"""
+    """evaluation episodes (eval split; the same configurations for every evaluation of a run)"""
     eval_every: int = 0
     """also evaluate every N online rounds (0: only after pretraining and at the end)"""
     eval_expert: bool = True
     """also evaluate the scripted expert on the evaluation episodes, for comparison"""
     expert_cache: bool = True
-    """reuse the expert's evaluation cached in <data.root>/expert_scores/ (measured once per task,
-    horizon, --eval-episodes, seed and --num-envs; the expert is deterministic); --no-expert-cache
-    measures it again and replaces the cached file"""
+    """reuse the expert's evaluation cached in <data.root>/expert_scores/ (--no-expert-cache: measure again)"""
     background_eval: bool = True
-    """evaluate the scripted expert and the offline teacher in a background process at low priority,
-    on the CPU time that training leaves idle (the same episodes and numbers; --no-background-eval:
-    in turn, in this process)"""
+    """evaluate the expert and the offline teacher in a low-priority background process (same numbers)"""
     collect_pixels: bool = False
-    """also store the 32x32 images in the dataset this run collects (pipeline.py: train_encoder.py
-    reuses it); the teacher reads states only, and an existing dataset with images is used as it is"""
+    """also store the 32x32 images in the dataset this run collects (for train_encoder.py)"""
     num_envs: int = field(default_factory=available_workers)
-    """environments stepped together (default: the available cores, at most 2); the evaluation
-    episodes' configurations depend on it, so compare runs of the same count"""
+    """environments stepped together (default: the available cores, at most 2); sets the eval configurations"""
     parallel: bool = True
-    """step them in worker processes (ParallelEnv), one core each; --no-parallel: in turn in this
-    process (SerialEnv; the same episodes and numbers)"""
+    """step them in worker processes (ParallelEnv); --no-parallel: in turn in this process (same numbers)"""
     collector: Literal["sync", "multi_sync"] = "sync"
-    """how evaluations and online rollouts step their --num-envs envs: one TorchRL Collector here
-    (the envs in ParallelEnv workers, or in turn with --no-parallel), or a MultiSyncCollector of
-    --num-envs processes, each with its own env and copy of the policy, started for every batch of
-    episodes (the same configurations; docs/scaling.md)"""
+    """how batches of episodes are stepped: one Collector here, or a MultiSyncCollector of --num-envs processes"""
     log_every: int = 50
     """log training metrics every N updates"""
     checkpoint_every: int = 500
@@ -200,9 +156,6 @@ def main(argv=None) -> dict:
     explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
     handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
                           target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
-    policy_file = lambda path: save_policy(path, kind="teacher", task=cfg.task, horizon=cfg.horizon, dt_config=dt_cfg,  # noqa: E731
-                                           actor=actor, observation_key="state", target_return=eval_rtg,
-                                           rtg_scale=cfg.rtg_scale, normalizer=normalizer)
     evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, policy_seed=cfg.seed,
                          collector=cfg.collector)
     eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
@@ -223,7 +176,7 @@ def main(argv=None) -> dict:
                 return dict(state)
         envs.join_workers()
         if state["offline_eval"] is None:
-            state.once("offline_policy_saved", lambda: policy_file(run.dir / "policy_offline.pt"))  # resumed: moved on
+            state.once("offline_policy_saved", lambda: handle.save(run.dir / "policy_offline.pt", dt_cfg))  # resumed: moved on
             background = cfg.background_eval and state["rounds"] < cfg.online_rounds
             offline_res = evals.evaluate(run, handle, eval_env, phases, "offline teacher", step=state["updates"],
                                          tag="after offline pretraining", background_step=cfg.offline_updates,
@@ -268,7 +221,7 @@ def main(argv=None) -> dict:
         evals.finish_pending(run, phases)  # the offline teacher's and the expert's background evaluations
     state["final_eval"] = float(res.final_performance.mean())
     with phases.phase("files and curves"):  # 5. save
-        policy_file(run.dir / "policy.pt")
+        handle.save(run.dir / "policy.pt", dt_cfg)
         state.save()
         run.finish(columns=("train/loss_nll", "train/entropy", "online/normalized_performance",
                             "eval/normalized_performance", "eval_expert/normalized_performance"))

@@ -3,14 +3,7 @@
     python recipes/train_encoder.py --task ClothFold
     python recipes/train_encoder.py --task ClothFold --no-aug          # the paper's No-Aug ablation
 
-Supervised regression on the simulator's states (the encoder outputs standardised states that
-are mapped back with the training set's mean/std). Augmentation while training only: random
-shifts (DrQ, up to ``--pad`` pixels) and horizontal flips whose labels are mirrored consistently
-(``task_spec(task).state_mirror``). Episodes are split into training and validation sets
-(``--val-fraction``); the train/validation MAE is printed and logged per epoch.
-
-Writes ``runs/train_encoder/<name>/``: ``config.json``, ``log.csv``, ``curves.png``,
-``checkpoint.pt`` (resume) and ``encoder.pt`` (the best-validation encoder, used by distill.py).
+Data, augmentation, student rounds, outputs (``runs/train_encoder/<name>/``): docs/recipes/train_encoder.md.
 """
 from __future__ import annotations
 
@@ -26,7 +19,7 @@ from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_ste
 from trakdis.envs.specs import TaskName
 from trakdis.modules import NormalizedEncoder
 from trakdis.optim import make_optimizer
-from trakdis.policies import load_teacher, save_encoder
+from trakdis.policies import load_teacher, save_encoder, student_rollout_steps
 from trakdis.training import eval_batches, shuffled_batches
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -68,14 +61,11 @@ class TrainEncoderConfig(RunConfig):
     coord_channels: bool = False
     """append pixel-coordinate channels to the image (CoordConv)"""
     extra_noise: tuple[float, ...] = ()
-    """also train on datasets of the same size collected with these expert movement noises (states
-    the expert alone never visits; collected if missing)"""
+    """also train on datasets of the same size collected with these expert movement noises"""
     val_fraction: float = 0.1
     """fraction of the episodes held out for validation"""
     teacher: str = ""
-    """teacher policy file or online_dt run directory: after the epochs, roll out the teacher's
-    weights on this encoder's estimates (the weight-copied student) on the train split, and train
-    on those images too (the states the student visits), --student-rounds times"""
+    """teacher policy file or online_dt run directory: also train on the weight-copied student's images"""
     student_rounds: int = 2
     """rounds of (student rollouts, training) with --teacher"""
     student_episodes: int = 20
@@ -144,7 +134,8 @@ def main(argv=None) -> dict:
         if teacher is not None and state["epoch"] == cfg.epochs + state["rounds_done"] * cfg.student_epochs:
             # The images the weight-copied student sees: its error there is what the teacher's
             # weights must act on (docs/recipes/distill.md), and expert images never show them.
-            new, metrics = _student_rollouts(cfg, spec, teacher, encoder, seed=cfg.seed + 5000 + state["rounds_done"])
+            new, metrics = student_rollout_steps(teacher, encoder, episodes=cfg.student_episodes, image_size=cfg.image_size,
+                                                 seed=cfg.seed + 5000 + state["rounds_done"])
             new = new.to_dict()  # plain tensors: the checkpoint loader refuses TensorDicts
             old = state["student_steps"]
             state["student_steps"] = new if old is None else {k: torch.cat([old[k], v]) for k, v in new.items()}
@@ -190,25 +181,6 @@ def main(argv=None) -> dict:
     run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
               f"(state units, mean over {spec.state_dim} dims)")
     return best
-
-
-def _student_rollouts(cfg: TrainEncoderConfig, spec, teacher, encoder, *, seed: int):
-    """``(steps, metrics)``: the pixels and true states of ``--student-episodes`` train-split episodes
-    of the teacher's weights acting on ``encoder``'s estimates, and how they went."""
-    from trakdis.evaluation import run_episodes
-    from trakdis.envs import close_env
-    from trakdis.policies import weight_copied_student
-
-    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
-    env = handle.make_env(num_envs=2, split="train", image_size=cfg.image_size)
-    try:
-        res = run_episodes(env, handle.make_policy(), cfg.student_episodes, max_steps=cfg.horizon, keep_episodes=True,
-                           seed=seed, desc="student rollouts")
-    finally:
-        close_env(env)
-    steps = torch.cat([ep.select("pixels", "state", "state_estimate").to_tensordict() for ep in res.episodes])
-    err = spec.state_error_cm((steps["state_estimate"] - steps["state"]).abs())
-    return steps.exclude("state_estimate"), {"normalized_performance": float(res.final_performance.mean()), **err}
 
 
 if __name__ == "__main__":

@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from trakdis.modules import DTConfig, NormalizedEncoder, StateEncoder, make_dt_actor
-from trakdis.policies import load_encoder, load_policy, load_teacher, make_acting_env, save_encoder, save_policy
+from trakdis.policies import (PolicyHandle, load_encoder, load_policy, load_teacher, make_acting_env, save_encoder,
+                              save_policy)
 from trakdis.utils.checkpoint import CheckpointError, save_checkpoint
 
 
@@ -80,3 +81,46 @@ def test_weight_copied_student_is_the_teachers_dt_on_the_estimate(tmp_path):
     fresh, _ = weight_copied_student(teacher, encoder, weight_copy=False, proprio_dims=(3, 4))
     assert fresh.proprio_dims == (3, 4) and fresh.normalizer.keys == ("state_estimate",)
     assert not all(torch.equal(a, b) for a, b in zip(teacher.actor.parameters(), fresh.actor.parameters()))
+
+
+def test_handle_save_writes_what_save_policy_writes(tmp_path):
+    from trakdis.transforms import StateNormalizer
+    from trakdis.utils.checkpoint import load_checkpoint
+
+    cfg, actor = tiny_actor("state_estimate")
+    norm = StateNormalizer(torch.zeros(5), torch.full((5,), 2.0), keys=("state", "state_estimate"))
+    fields = dict(kind="student", task="ClothFold", horizon=10, actor=actor, observation_key="state_estimate",
+                  target_return=-0.5, rtg_scale=2.0, normalizer=norm, env_kwargs={"picker_size": 0.03})
+    extra = {"encoder_file": {"task": "ClothFold"}, "extra": {"weight_copy": False}}
+    save_policy(tmp_path / "a.pt", dt_config=cfg, **fields, **extra)
+    PolicyHandle(**fields).save(tmp_path / "b.pt", cfg, **extra)
+    a, b = load_checkpoint(tmp_path / "a.pt"), load_checkpoint(tmp_path / "b.pt")
+    assert a.keys() == b.keys() and b["weight_copy"] is False and b["env_kwargs"] == {"picker_size": 0.03}
+    for k in a:
+        if k in ("actor", "normalizer"):
+            assert a[k].keys() == b[k].keys() and all(same(a[k][n], b[k][n]) for n in a[k]), k
+        else:
+            assert a[k] == b[k], k
+
+
+def same(x, y) -> bool:
+    return torch.equal(x, y) if torch.is_tensor(x) else x == y
+
+
+def test_student_rollout_steps(tmp_path):
+    from trakdis.envs import task_spec
+    from trakdis.policies import student_rollout_steps
+
+    spec = task_spec("ClothFold")
+    cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(spec.state_dim,
+                                                                                          spec.action_dim, horizon=2)
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFold", horizon=2, dt_config=cfg,
+                actor=make_dt_actor(cfg, observation_key="state"), observation_key="state", target_return=-1.0,
+                rtg_scale=1.0)
+    encoder = NormalizedEncoder(StateEncoder(spec.state_dim, channels=(4, 4, 4, 4), hidden_dim=8),
+                                torch.zeros(spec.state_dim), torch.ones(spec.state_dim))
+    steps, metrics = student_rollout_steps(load_teacher(tmp_path), encoder, episodes=2, seed=0)
+    assert set(steps.keys()) == {"pixels", "state"} and steps.batch_size == (4,)  # 2 episodes x 2 steps
+    assert steps["pixels"].shape[1:] == (32, 32, 3) and steps["state"].shape[1:] == (spec.state_dim,)
+    assert set(metrics) == {"normalized_performance", "corners_cm", "pickers_cm", "mae"}
+    assert encoder.training  # the rollouts used a copy: the caller's encoder keeps its mode

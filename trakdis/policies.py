@@ -43,6 +43,7 @@ __all__ = [
     "IMAGE_POLICY_KINDS",
     "save_image_policy",
     "weight_copied_student",
+    "student_rollout_steps",
 ]
 
 
@@ -210,6 +211,15 @@ class PolicyHandle:
             return policy
         return NormalizedPolicy(policy, self.normalizer, self.observation_key, pre=pre)
 
+    def save(self, path: str | Path, dt_config, *, encoder_file: Mapping[str, Any] | None = None,
+             extra: Mapping[str, Any] | None = None) -> Path:
+        """Write this Decision Transformer policy (teacher or student) with :func:`save_policy`, from
+        the handle's own fields; ``dt_config``: its actor's :class:`~trakdis.modules.DTConfig`."""
+        return save_policy(path, kind=self.kind, task=self.task, horizon=self.horizon, dt_config=dt_config,
+                           actor=self.actor, observation_key=self.observation_key, target_return=self.target_return,
+                           rtg_scale=self.rtg_scale, normalizer=self.normalizer, env_kwargs=self.env_kwargs,
+                           encoder_file=encoder_file, extra=extra)
+
 
 def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_copy: bool = True,
                           normalizer_keys: tuple[str, ...] = ("state_estimate",), proprio_dims: tuple = (),
@@ -234,6 +244,30 @@ def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_c
                           normalizer=None if norm is None else StateNormalizer(norm.loc, norm.scale, keys=normalizer_keys),
                           proprio_dims=tuple(proprio_dims))
     return handle, dt_cfg
+
+
+def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int,
+                          image_size: int = 32, num_envs: int = 2):
+    """``(steps, metrics)``: the ``"pixels"`` and true ``"state"`` of every step of ``episodes``
+    train-split episodes of the weight-copied student of ``teacher`` acting on a frozen copy of
+    ``encoder``'s estimates (the states the student visits; ``train_encoder.py --teacher``), and how
+    they went: ``normalized_performance`` (mean at the episodes' end) and the estimate's error per
+    state group (``task_spec(task).state_error_cm``)."""
+    import copy
+
+    from trakdis.envs import close_env, task_spec
+    from trakdis.evaluation import run_episodes
+
+    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
+    env = handle.make_env(num_envs=num_envs, split="train", image_size=image_size)
+    try:
+        res = run_episodes(env, handle.make_policy(), episodes, max_steps=teacher.horizon, keep_episodes=True,
+                           seed=seed, desc="student rollouts")
+    finally:
+        close_env(env)
+    steps = torch.cat([ep.select("pixels", "state", "state_estimate").to_tensordict() for ep in res.episodes])
+    err = task_spec(teacher.task, horizon=teacher.horizon).state_error_cm((steps["state_estimate"] - steps["state"]).abs())
+    return steps.exclude("state_estimate"), {"normalized_performance": float(res.final_performance.mean()), **err}
 
 
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,

@@ -34,3 +34,16 @@ def test_proprioception_override():
     assert td["state_estimate"][0].tolist() == [0, 0, 0, 0, 4, 5]
     with pytest.raises(KeyError, match="state"):
         ProprioceptionOverride([1])(TensorDict({"state_estimate": torch.zeros(1, 2)}, [1]))
+
+
+def test_chain_applies_the_steps_in_order():
+    from trakdis.transforms import chain
+
+    td = TensorDict({"state": torch.tensor([[1.0, 2.0, 3.0, 4.0]])}, [1])
+    norm = StateNormalizer(torch.ones(4), torch.full((4,), 2.0))
+    override = ProprioceptionOverride((3,))
+    td["state_estimate"] = torch.zeros(1, 4)
+    out = chain(override, StateNormalizer(torch.ones(4), torch.full((4,), 2.0), keys=("state_estimate",)))(td.clone())
+    assert out["state_estimate"].tolist() == [[-0.5, -0.5, -0.5, 1.5]]  # overridden first, then standardised
+    assert torch.equal(chain(norm)(td.clone())["state"], norm(td.clone())["state"])
+    assert chain()(td) is td  # no steps: the identity

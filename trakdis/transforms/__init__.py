@@ -6,7 +6,7 @@ from .augment import horizontal_flip, mirror_state, random_flip, random_shift
 from .encoder import EncoderTransform
 from .image import ImageResize, resize_images
 from .noise import StateNoise
-from .normalization import ProprioceptionOverride, StateNormalizer
+from .normalization import ProprioceptionOverride, StateNormalizer, chain
 from .return_to_go import ReturnToGo, hindsight_return_to_go
 
 __all__ = [
@@ -16,6 +16,7 @@ __all__ = [
     "ReturnToGo",
     "StateNoise",
     "StateNormalizer",
+    "chain",
     "hindsight_return_to_go",
     "horizontal_flip",
     "mirror_state",

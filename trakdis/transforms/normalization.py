@@ -3,14 +3,15 @@ sampling transforms, and the acting maps of :class:`~trakdis.modules.NormalizedP
 
 * :class:`StateNormalizer`: ``x -> (x - loc) / scale`` on some keys, fitted on a dataset's states.
 * :class:`ProprioceptionOverride`: the picker dims of an encoder's estimate taken from the true state.
+* :func:`chain`: several such callables applied in order (a replay buffer takes one transform).
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 
-__all__ = ["ProprioceptionOverride", "StateNormalizer"]
+__all__ = ["ProprioceptionOverride", "StateNormalizer", "chain"]
 
 
 class StateNormalizer:
@@ -69,3 +70,15 @@ class ProprioceptionOverride:
             est[..., self.dims] = td.get(self.src)[..., self.dims].to(est.dtype)
             td.set(self.dst, est)
         return td
+
+
+def chain(*steps: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """One callable applying ``steps`` (callables on a TensorDict, each returning it) in order;
+    none: the identity."""
+
+    def apply(td):
+        for step in steps:
+            td = step(td)
+        return td
+
+    return apply
