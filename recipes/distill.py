@@ -207,7 +207,8 @@ def main(argv=None) -> dict:
                 evaluate(f"student after round {state['rounds']}")
             if state.save_and_should_stop(cfg.rounds, key="rounds", unit="round"):
                 return dict(state)
-        final = evaluate("student after distillation")
+        # --rounds 0 (the weight copy alone): the policy did not change, its evaluation stands
+        final = evaluate("student after distillation") if cfg.rounds > 0 else state["initial_eval"]
     finally:
         close_env(eval_env)
         for env in roll_envs:
