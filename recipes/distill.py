@@ -18,7 +18,7 @@ from trakdis.data import (DataConfig, encode_trajectories, ensure_dataset, episo
 from trakdis.envs import close_env
 from trakdis.evaluation import EvalProtocol, run_episodes
 from trakdis.optim import OptimConfig, mean_metrics
-from trakdis.policies import load_encoder, load_teacher, weight_copied_student
+from trakdis.policies import check_unseen_picker_mask, load_encoder, load_teacher, weight_copied_student
 from trakdis.transforms import ProprioceptionOverride, chain
 from trakdis.utils.logger import latest_run_file
 from trakdis.utils.progress import progress
@@ -111,6 +111,8 @@ def main(argv=None) -> dict:
                            device=cfg.device)
     enc_path = latest_run_file(cfg.encoder, cfg.root, "train_encoder", "encoder.pt", flag="--encoder")
     encoder, enc_file = load_encoder(enc_path, task=teacher.task)
+    # --mask-unseen-pickers: both trained on it or neither (the teacher's normaliser carries the fill to the student)
+    check_unseen_picker_mask(teacher, enc_file, encoder_source=str(enc_path))
     task, horizon = teacher.task, teacher.horizon
     # Teacher and student read states standardised with the teacher's statistics (the student's
     # weights start as the teacher's, and the encoder's estimates live in state units).

@@ -26,7 +26,7 @@ from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig, mean_metrics
 from trakdis.policies import PolicyHandle
 from trakdis.training import train_updates
-from trakdis.transforms import StateNoise, StateNormalizer
+from trakdis.transforms import OutOfViewFill, StateNoise, StateNormalizer
 from trakdis.utils.phases import available_workers
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig, RunState
@@ -58,6 +58,8 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """lower bound (metres) of the state normaliser's per-dimension scale"""
     state_noise: float = 0.0
     """std (metres) of Gaussian noise on the states of every training window (the acting state stays exact)"""
+    mask_unseen_pickers: bool = False
+    """train and act with each picker out of the 32x32 camera view replaced by a fixed sentinel xyz"""
     rtg_scale: float = 1.0
     """return-to-go scale (rewards and targets are multiplied by it)"""
     buffer_capacity: Optional[int] = None
@@ -139,12 +141,15 @@ def main(argv=None) -> dict:
     if not state.resuming:  # 1. the expert data: its states' statistics, its best return
         trajectories, lengths = load_offline_data(cfg.data, phases=phases, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
                                                   collect_pixels=cfg.collect_pixels, log=run.print, progress=cfg.progress)
+        # statistics of the raw states; the fill (--mask-unseen-pickers) is carried, applied before standardising
+        fill = OutOfViewFill.for_task(cfg.task) if cfg.mask_unseen_pickers else None
         state["normalizer"] = StateNormalizer.fit(trajectories["state"][valid_mask(lengths, trajectories.shape[1])],
-                                                  min_scale=cfg.state_scale_floor).state_dict()
+                                                  min_scale=cfg.state_scale_floor, fill=fill).state_dict()
         state["best_return"] = float(trajectories["reward"].sum(dim=(-2, -1)).max())
         if state["buffer_capacity"] is None:
             state["buffer_capacity"] = int(trajectories.shape[0])
-    # The DT reads standardised states (buffer windows and acting; noisy ones with --state-noise); data stays raw.
+    # The DT reads standardised states (buffer windows and acting; noisy ones with --state-noise; out-of-view
+    # pickers masked with --mask-unseen-pickers); data stays raw.
     normalizer = StateNormalizer.from_state_dict(state["normalizer"])
     noise = StateNoise(cfg.state_noise, in_keys=["state"], seed=cfg.seed + 7919) if cfg.state_noise > 0 else None
     buffer = make_buffer(state["buffer_capacity"], cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),

@@ -16,7 +16,9 @@
 Each stage is an ordinary run of its recipe under ``<root>/<recipe>/<name>-<stage>``; a stage whose
 output file exists is skipped and an interrupted one is resumed, so ``--resume`` continues the
 pipeline. Extra options go to one stage with ``--teacher-args="..."``, ``--encoder-args="..."``,
-``--student-args="..."`` (with ``=``: the value starts with ``--``). Writes ``<root>/pipeline/<name>/summary.md`` and ``summary.csv``.
+``--student-args="..."`` (with ``=``: the value starts with ``--``); ``--mask-unseen-pickers`` goes to
+the teacher and encoder stages (the student inherits it from the teacher). Writes
+``<root>/pipeline/<name>/summary.md`` and ``summary.csv``.
 """
 from __future__ import annotations
 
@@ -53,6 +55,8 @@ class PipelineConfig(RunConfig):
     """extra options for recipes/train_encoder.py (default: noisy-expert images added to training)"""
     student_args: str = ""
     """extra options for recipes/distill.py"""
+    mask_unseen_pickers: bool = False
+    """pass --mask-unseen-pickers to the teacher and encoder stages (pickers out of the camera view masked)"""
 
 
 def recipe(name: str):
@@ -91,10 +95,11 @@ def main(argv=None) -> pd.DataFrame:
     cfg = run.cfg
     name = run.dir.name
     timings: dict[str, float] = {}
+    mask = ["--mask-unseen-pickers"] if cfg.mask_unseen_pickers else []
     teacher = stage(run, "online_dt", f"{name}-teacher", "policy.pt",
-                    ["--task", cfg.task, "--collect-pixels", *shlex.split(cfg.teacher_args)], timings)
+                    ["--task", cfg.task, "--collect-pixels", *mask, *shlex.split(cfg.teacher_args)], timings)
     encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
-                    ["--task", cfg.task, "--teacher", str(teacher), *shlex.split(cfg.encoder_args)], timings)
+                    ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)], timings)
     student = stage(run, "distill", f"{name}-student", "policy.pt",
                     ["--teacher", str(teacher), "--encoder", str(encoder), *shlex.split(cfg.student_args)], timings)
     rows = []

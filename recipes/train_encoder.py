@@ -19,7 +19,8 @@ from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_ste
 from trakdis.envs.specs import TaskName
 from trakdis.modules import NormalizedEncoder
 from trakdis.optim import make_optimizer
-from trakdis.policies import load_teacher, save_encoder, student_rollout_steps
+from trakdis.policies import check_unseen_picker_mask, load_teacher, save_encoder, student_rollout_steps
+from trakdis.transforms import OutOfViewFill
 from trakdis.training import eval_batches, shuffled_batches
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -72,6 +73,8 @@ class TrainEncoderConfig(RunConfig):
     """student rollouts per round"""
     student_epochs: int = 5
     """passes over all training images after each round's rollouts"""
+    mask_unseen_pickers: bool = False
+    """label each picker out of the camera view with a fixed sentinel xyz (for a teacher trained so)"""
 
 
 def main(argv=None) -> dict:
@@ -102,6 +105,15 @@ def main(argv=None) -> dict:
         extra_steps = real_steps(extra_data, extra_lengths)
         train = torch.cat([train, extra_steps])
         run.print(f"training images +{extra_steps.shape[0]} from {extra_path}")
+    # --mask-unseen-pickers: the labels (training and validation) are what the teacher reads, a picker
+    # out of the image replaced by the sentinel the encoder then learns to output for it
+    fill = OutOfViewFill.for_task(cfg.task, image_size=cfg.image_size) if cfg.mask_unseen_pickers else None
+    if fill is not None:
+        run.print(f"--mask-unseen-pickers: {1 - float(fill.visible(train['state']).float().mean()):.1%} of the training "
+                  f"images' picker positions are out of view (label {[round(v, 3) for v in fill.fill.tolist()]})")
+        train.set("state", fill.mask(train["state"]))
+        if val is not None:
+            val.set("state", fill.mask(val["state"]))
     train_states = train["state"]
     mean, std = train_states.mean(0), train_states.std(0).clamp_min(1e-3)
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "
@@ -122,6 +134,9 @@ def main(argv=None) -> dict:
     state.restore_rng()
     teacher = None if not cfg.teacher or cfg.student_rounds <= 0 else load_teacher(cfg.teacher, task=cfg.task,
                                                                                    horizon=cfg.horizon)
+    mask_meta = {"mask_unseen_pickers": fill is not None, "out_of_view_fill": None if fill is None else fill.state_dict()}
+    if teacher is not None:  # the student rounds' student acts with the teacher's (masked or not) states
+        check_unseen_picker_mask(teacher, mask_meta, encoder_source=f"{run.dir} (this train_encoder.py run)")
     total_epochs = cfg.epochs + (cfg.student_rounds * cfg.student_epochs if teacher is not None else 0)
 
     def validate() -> dict:
@@ -137,6 +152,8 @@ def main(argv=None) -> dict:
             new, metrics = student_rollout_steps(teacher, encoder, episodes=cfg.student_episodes, image_size=cfg.image_size,
                                                  seed=cfg.seed + 5000 + state["rounds_done"])
             new = new.to_dict()  # plain tensors: the checkpoint loader refuses TensorDicts
+            if fill is not None:
+                new["state"] = fill.mask(new["state"])
             old = state["student_steps"]
             state["student_steps"] = new if old is None else {k: torch.cat([old[k], v]) for k, v in new.items()}
             state["rounds_done"] += 1
@@ -176,7 +193,7 @@ def main(argv=None) -> dict:
     encoder.load_state_dict(best["state_dict"])
     save_encoder(run.dir / "encoder.pt", encoder.cpu(), task=cfg.task,
                  extra={"val_mae": best["val_mae"], "val_error_cm": best.get("val_error_cm"), "epoch": best["epoch"],
-                        "aug": cfg.aug, "dataset": str(path), "student_rounds": state["rounds_done"]})
+                        "aug": cfg.aug, "dataset": str(path), "student_rounds": state["rounds_done"], **mask_meta})
     run.finish()
     run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
               f"(state units, mean over {spec.state_dim} dims)")

@@ -124,3 +124,34 @@ def test_student_rollout_steps(tmp_path):
     assert steps["pixels"].shape[1:] == (32, 32, 3) and steps["state"].shape[1:] == (spec.state_dim,)
     assert set(metrics) == {"normalized_performance", "corners_cm", "pickers_cm", "mae"}
     assert encoder.training  # the rollouts used a copy: the caller's encoder keeps its mode
+
+
+def test_masked_teacher_passes_its_fill_to_the_student_and_a_mismatched_encoder_is_refused(tmp_path):
+    """--mask-unseen-pickers: the teacher file's normaliser carries the fill, the weight-copied
+    student's normaliser keeps it; teacher and encoder must both be masked or neither."""
+    from trakdis.policies import check_unseen_picker_mask, weight_copied_student
+    from trakdis.transforms import OutOfViewFill, StateNormalizer
+
+    cfg, actor = tiny_actor()
+    fill = OutOfViewFill.for_task("ClothFoldDiagonalPinned")
+    for name, f in (("masked", fill), ("plain", None)):
+        save_policy(tmp_path / f"{name}.pt", kind="teacher", task="ClothFoldDiagonalPinned", horizon=10, dt_config=cfg,
+                    actor=actor, observation_key="state", target_return=-0.5, rtg_scale=1.0,
+                    normalizer=StateNormalizer(torch.zeros(15), torch.ones(15), fill=f))
+    masked, plain = load_policy(tmp_path / "masked.pt"), load_policy(tmp_path / "plain.pt")
+    assert masked.normalizer.fill == fill and plain.normalizer.fill is None
+    student, _ = weight_copied_student(masked, torch.nn.Identity(), normalizer_keys=("state", "state_estimate"))
+    assert student.normalizer.fill == fill and student.normalizer.keys == ("state", "state_estimate")
+    x = torch.zeros(2, 15)
+    x[1, 12:] = torch.tensor([0.0, 0.0, 0.3])  # out of view: the student reads the sentinel, like the teacher
+    assert student.normalizer.normalize(x)[1, 12:].tolist() == pytest.approx([0.0, 0.0, 0.4])
+    enc_masked = {"mask_unseen_pickers": True, "out_of_view_fill": fill.state_dict()}
+    assert check_unseen_picker_mask(masked, enc_masked, encoder_source="enc.pt") is True
+    assert check_unseen_picker_mask(plain, {}, encoder_source="enc.pt") is False  # earlier encoder files
+    for teacher, enc in ((masked, {}), (plain, enc_masked), (masked, {"mask_unseen_pickers": False})):
+        with pytest.raises(ValueError, match=rf"teacher {teacher.source} .*encoder enc\.pt .*--mask-unseen-pickers"):
+            check_unseen_picker_mask(teacher, enc, encoder_source="enc.pt")
+    other = {"mask_unseen_pickers": True,
+             "out_of_view_fill": OutOfViewFill.for_task("ClothFoldDiagonalPinned", image_size=64).state_dict()}
+    with pytest.raises(ValueError, match="different masks"):
+        check_unseen_picker_mask(masked, other, encoder_source="enc.pt")

@@ -44,6 +44,7 @@ __all__ = [
     "save_image_policy",
     "weight_copied_student",
     "student_rollout_steps",
+    "check_unseen_picker_mask",
 ]
 
 
@@ -237,13 +238,40 @@ def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_c
     student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=device)
     if weight_copy:
         copy_teacher_weights(student, teacher.actor)
-    norm = teacher.normalizer
+    norm = teacher.normalizer  # its out-of-view fill too (--mask-unseen-pickers): the student reads what the teacher read
     handle = PolicyHandle("student", teacher.task, teacher.horizon, actor=student, encoder=encoder,
                           observation_key="state_estimate", target_return=teacher.target_return,
                           rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
-                          normalizer=None if norm is None else StateNormalizer(norm.loc, norm.scale, keys=normalizer_keys),
+                          normalizer=None if norm is None else norm.with_keys(normalizer_keys),
                           proprio_dims=tuple(proprio_dims))
     return handle, dt_cfg
+
+
+def check_unseen_picker_mask(teacher: PolicyHandle, encoder_file: Mapping[str, Any], *, encoder_source: str) -> bool:
+    """Whether ``teacher`` acts on out-of-view-masked states (``online_dt.py --mask-unseen-pickers``:
+    its normaliser carries an :class:`~trakdis.transforms.OutOfViewFill`); a ``ValueError`` naming
+    both files and the flag unless the encoder (``encoder_file``: an encoder file's dict, read from
+    ``encoder_source``; ``train_encoder.py --mask-unseen-pickers`` records ``mask_unseen_pickers``
+    and ``out_of_view_fill``) was trained on labels masked the same way."""
+    from trakdis.transforms import OutOfViewFill
+
+    fill = None if teacher.normalizer is None else teacher.normalizer.fill
+    encoder_masked = bool(encoder_file.get("mask_unseen_pickers", False))
+    if (fill is not None) != encoder_masked:
+        def how(masked):
+            return "with --mask-unseen-pickers" if masked else "without --mask-unseen-pickers"
+
+        raise ValueError(f"teacher {teacher.source} was trained {how(fill is not None)} (online_dt.py) but encoder "
+                         f"{encoder_source} {how(encoder_masked)} (train_encoder.py): the student would read estimates "
+                         f"of states the teacher never saw; train both with the same --mask-unseen-pickers")
+    if fill is not None and encoder_file.get("out_of_view_fill") is not None:
+        theirs = OutOfViewFill.from_state_dict(encoder_file["out_of_view_fill"])
+        same = (theirs.image_size == fill.image_size and theirs.starts == fill.starts
+                and torch.allclose(theirs.camera_matrix, fill.camera_matrix) and torch.equal(theirs.fill, fill.fill))
+        if not same:
+            raise ValueError(f"teacher {teacher.source} and encoder {encoder_source} were trained with "
+                             f"--mask-unseen-pickers but different masks ({fill!r} vs {theirs!r})")
+    return fill is not None
 
 
 def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int,
@@ -252,7 +280,8 @@ def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes
     train-split episodes of the weight-copied student of ``teacher`` acting on a frozen copy of
     ``encoder``'s estimates (the states the student visits; ``train_encoder.py --teacher``), and how
     they went: ``normalized_performance`` (mean at the episodes' end) and the estimate's error per
-    state group (``task_spec(task).state_error_cm``)."""
+    state group (``task_spec(task).state_error_cm``; against the state the teacher reads, its
+    out-of-view pickers masked when its normaliser carries a fill). The returned ``"state"`` is raw."""
     import copy
 
     from trakdis.envs import close_env, task_spec
@@ -266,7 +295,9 @@ def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes
     finally:
         close_env(env)
     steps = torch.cat([ep.select("pixels", "state", "state_estimate").to_tensordict() for ep in res.episodes])
-    err = task_spec(teacher.task, horizon=teacher.horizon).state_error_cm((steps["state_estimate"] - steps["state"]).abs())
+    fill = None if teacher.normalizer is None else teacher.normalizer.fill
+    target = steps["state"] if fill is None else fill.mask(steps["state"])  # what the encoder is trained to output
+    err = task_spec(teacher.task, horizon=teacher.horizon).state_error_cm((steps["state_estimate"] - target).abs())
     return steps.exclude("state_estimate"), {"normalized_performance": float(res.final_performance.mean()), **err}
 
 

@@ -232,8 +232,9 @@ def test_evaluate_student_and_expert(workdir, student):
 
 @pytest.mark.parametrize("recipe,flags", [
     ("collect", ["--episodes", "--no-pixels"]),
-    ("online_dt", ["--preset", "--model.embed-dim", "--offline-updates", "--exploration-rtg", "--resume"]),
-    ("train_encoder", ["--no-aug", "--val-fraction"]),
+    ("online_dt", ["--preset", "--model.embed-dim", "--offline-updates", "--exploration-rtg", "--resume",
+                   "--mask-unseen-pickers"]),
+    ("train_encoder", ["--no-aug", "--val-fraction", "--mask-unseen-pickers"]),
     ("distill", ["--no-weight-copy", "--no-distill", "--state-noise"]),
     ("evaluate", ["--trials", "--state-noise", "--videos"]),
 ])
@@ -300,7 +301,9 @@ def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatc
 
 def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     """recipes/pipeline.py: teacher, encoder, student and the three evaluations, then one table;
-    a second call finds every stage's output and only rebuilds the table."""
+    a second call finds every stage's output and only rebuilds the table. With --mask-unseen-pickers
+    (the default-off runs are the fixtures'): the teacher's policy file carries the fill, the encoder
+    learns masked labels, the student rounds and the student act with it."""
     # --no-parallel: the same numbers (test_online_dt_serial_envs...), without starting worker processes
     teacher = " ".join(map(str, online_dt_args("unused")[2:]))
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
@@ -308,8 +311,13 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
                                  "--student-episodes", 2, "--student-epochs", 1]))
     student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--eval-episodes", 2, "--batch-size", 8, *DATA]))
     args = ["--name", "pipe", "--trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
-            f"--student-args={student}", "--threads", 1]
-    run_recipe(workdir, "pipeline", *args, timeout=400)
+            f"--student-args={student}", "--threads", 1, "--mask-unseen-pickers"]
+    out = run_recipe(workdir, "pipeline", *args, timeout=400)
+    assert "of the training images' picker positions are out of view" in out.stdout
+    for run_dir in ("online_dt/pipe-teacher", "distill/pipe-student"):
+        assert load_policy(workdir / "runs" / run_dir).normalizer.fill is not None, run_dir
+    ck = load_checkpoint(workdir / "runs" / "train_encoder" / "pipe-encoder" / "encoder.pt")
+    assert ck["mask_unseen_pickers"] is True and ck["out_of_view_fill"]["starts"] == [12, 15]
     table = pd.read_csv(workdir / "runs" / "pipeline" / "pipe" / "summary.csv")
     assert table["policy"].tolist() == ["expert", "teacher", "student"]
     assert (table["n"] == 2).all() and table.loc[1, "x_teacher"] == pytest.approx(1.0)

@@ -47,3 +47,33 @@ def test_chain_applies_the_steps_in_order():
     assert out["state_estimate"].tolist() == [[-0.5, -0.5, -0.5, 1.5]]  # overridden first, then standardised
     assert torch.equal(chain(norm)(td.clone())["state"], norm(td.clone())["state"])
     assert chain()(td) is td  # no steps: the identity
+
+
+def test_state_normalizer_with_out_of_view_fill(tmp_path):
+    """--mask-unseen-pickers: the fill runs before standardising, travels in the state dict; state
+    dicts without it (earlier policy files and checkpoints) load as before."""
+    from trakdis.transforms import OutOfViewFill
+    from trakdis.utils.checkpoint import load_checkpoint, save_checkpoint
+
+    fill = OutOfViewFill.for_task("ClothFold")
+    states = torch.rand(4, 5, 18) * 0.2 - 0.1
+    states[1, :, 12:15] = torch.tensor([0.0, 0.0, 0.3])  # picker 0 high out of view
+    states[2, :, 15:18] = torch.tensor([0.4, 0.0, 0.0])  # picker 1 beyond the frame's edge
+    norm = StateNormalizer.fit(states, keys=("state", "state_estimate"), fill=fill)
+    plain = StateNormalizer.fit(states, keys=("state", "state_estimate"))
+    assert torch.equal(norm.loc, plain.loc) and torch.equal(norm.scale, plain.scale)  # fitted on the raw states
+    raw = states.clone()
+    assert torch.allclose(norm.normalize(states), (fill.mask(states) - norm.loc) / norm.scale)
+    assert torch.equal(states, raw) and not torch.allclose(norm.normalize(states), plain.normalize(states))
+    save_checkpoint(tmp_path / "n.pt", {"with": norm.state_dict(), "without": plain.state_dict()})
+    saved = load_checkpoint(tmp_path / "n.pt")
+    again = StateNormalizer.from_state_dict(saved["with"])
+    assert again.fill == fill and again.keys == norm.keys and torch.equal(again.normalize(states), norm.normalize(states))
+    assert "fill" not in saved["without"] and StateNormalizer.from_state_dict(saved["without"]).fill is None
+    old = {k: v for k, v in saved["without"].items() if k != "keys"}  # the oldest layout: loc and scale only
+    assert StateNormalizer.from_state_dict(old).fill is None
+    assert norm.with_keys(("state_estimate",)).fill is fill
+    with pytest.raises(TypeError, match="OutOfViewFill"):
+        StateNormalizer(norm.loc, norm.scale, fill=fill.state_dict())
+    with pytest.raises(ValueError, match="do not fit 15-dim states"):
+        StateNormalizer(norm.loc[:15], norm.scale[:15], fill=fill)

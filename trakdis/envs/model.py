@@ -10,6 +10,7 @@ from trakdis.envs.specs import ClothConfig, check_task
 # Camera: in the plane x = 0, image x axis = world +x, looking down at 45 degrees at the cloth
 # centre. A horizontal image flip is then exactly the reflection x -> -x (see specs.TaskSpec).
 CAMERA_POS = (0.0, -0.48, 0.48)
+CAMERA_XYAXES = (1.0, 0.0, 0.0, 0.0, 1.0, 1.0)  # MJCF xyaxes: the camera's x and y axes in the world frame
 CAMERA_FOVY = 45.0
 
 TABLE_RGBA = "0.55 0.47 0.38 1"
@@ -124,6 +125,7 @@ def build_mjcf(
     )
     off = max(render_size, 64)
     cam = CAMERA_POS
+    xyaxes = " ".join(f"{a:g}" for a in CAMERA_XYAXES)
     return f"""
 <mujoco model="trakdis_{task}">
   <option timestep="{physics.timestep}" integrator="Euler" solver="{physics.solver}" iterations="{physics.iterations}"
@@ -137,7 +139,7 @@ def build_mjcf(
   <worldbody>
     <light pos="0 -0.2 1.2" dir="0 0.15 -1" castshadow="false" diffuse="0.35 0.35 0.35"/>
     <geom name="table" type="plane" size="0.8 0.8 0.01" rgba="{TABLE_RGBA}" friction="{f:.6f} 0.005 0.0001"/>
-    <camera name="main" pos="{cam[0]} {cam[1]} {cam[2]}" xyaxes="1 0 0 0 1 1" fovy="{CAMERA_FOVY}"/>
+    <camera name="main" pos="{cam[0]} {cam[1]} {cam[2]}" xyaxes="{xyaxes}" fovy="{CAMERA_FOVY}"/>
     <flexcomp name="cloth" type="grid" count="{n} {n} 1" spacing="{sx:.6f} {sy:.6f} {sx:.6f}"
               pos="{config.offset_x:.6f} {config.offset_y:.6f} {r}" euler="0 0 {deg:.6f}" radius="{r}"
               dim="2" mass="{config.mass:.6f}" rgba="{CLOTH_RGBA}">

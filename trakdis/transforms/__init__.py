@@ -1,5 +1,5 @@
 """TorchRL transforms for TraKDis: image resizing, frozen-encoder state estimation, return-to-go, noise;
-state standardisation and the proprioception override (TensorDict callables); image augmentation
+state standardisation, out-of-view picker masking and the proprioception override (TensorDict callables); image augmentation
 with consistent label transforms (``random_shift``, ``random_flip``, ``horizontal_flip``, ``mirror_state``)."""
 
 from .augment import horizontal_flip, mirror_state, random_flip, random_shift
@@ -8,15 +8,18 @@ from .image import ImageResize, resize_images
 from .noise import StateNoise
 from .normalization import ProprioceptionOverride, StateNormalizer, chain
 from .return_to_go import ReturnToGo, hindsight_return_to_go
+from .visibility import OutOfViewFill, fixed_camera_matrix
 
 __all__ = [
     "EncoderTransform",
     "ImageResize",
+    "OutOfViewFill",
     "ProprioceptionOverride",
     "ReturnToGo",
     "StateNoise",
     "StateNormalizer",
     "chain",
+    "fixed_camera_matrix",
     "hindsight_return_to_go",
     "horizontal_flip",
     "mirror_state",

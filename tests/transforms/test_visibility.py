@@ -1,0 +1,71 @@
+"""OutOfViewFill: pickers out of the camera's view replaced by a sentinel (--mask-unseen-pickers)."""
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from trakdis.envs.model import CAMERA_POS
+from trakdis.transforms import OutOfViewFill, fixed_camera_matrix
+from trakdis.utils.checkpoint import load_checkpoint, save_checkpoint
+
+IN_VIEW = [(0.0, 0.0, 0.0), (0.1, 0.05, 0.05), (0.0, 0.3, 0.0)]
+# high above the frame, beyond its right / left edge, and behind the camera (on its axis: the
+# projection alone would land in the middle of the image)
+BEHIND = tuple(np.asarray(CAMERA_POS) - 0.2 * np.array([0.0, 1.0, -1.0]) / np.sqrt(2))
+OUT_OF_VIEW = [(0.0, 0.0, 0.3), (0.4, 0.0, 0.0), (-0.4, 0.0, 0.0), BEHIND]
+
+
+def _states(picker0, picker1, batch=(2, 3)):
+    x = torch.randn(*batch, 18)
+    x[..., 12:15] = torch.tensor(picker0, dtype=torch.float32)
+    x[..., 15:18] = torch.tensor(picker1, dtype=torch.float32)
+    return x
+
+
+@pytest.mark.parametrize("out", OUT_OF_VIEW)
+def test_out_of_view_picker_is_filled_in_view_one_kept(out):
+    fill = OutOfViewFill.for_task("ClothFold")
+    assert fill.starts == (12, 15) and fill.image_size == 32
+    for inside in IN_VIEW:
+        x = _states(inside, out)  # [B, T, D]
+        before = x.clone()
+        y = fill.mask(x)
+        assert torch.equal(x, before)  # the input is not modified
+        assert y.shape == x.shape and fill.visible(x)[..., 0].all() and not fill.visible(x)[..., 1].any()
+        assert torch.equal(y[..., :15], x[..., :15])  # corners and the in-view picker unchanged
+        assert torch.equal(y[..., 15:18], torch.tensor([0.0, 0.0, 0.4]).expand(2, 3, 3))
+        assert torch.equal(fill.mask(y), y)  # idempotent: the sentinel itself is out of view
+
+
+def test_diagonal_tasks_mask_their_one_picker_and_tensordicts():
+    fill = OutOfViewFill.for_task("ClothFoldDiagonalPinned", fill=(0.0, 0.0, 0.5))
+    assert fill.starts == (12,)
+    x = torch.zeros(4, 15)
+    x[1, 12:15] = torch.tensor([0.0, 0.0, 0.3])
+    td = TensorDict({"state": x, "other": x.clone()}, [4])
+    out = fill(td)
+    assert out["state"][1, 12:].tolist() == [0.0, 0.0, 0.5] and torch.equal(out["state"][[0, 2, 3]], x[[0, 2, 3]])
+    assert torch.equal(out["other"], x) and x[1, 14] == 0.3  # other keys and the input tensor untouched
+    with pytest.raises(ValueError, match="dims"):
+        fill.mask(torch.zeros(3, 12))
+
+
+def test_state_dict_round_trip_through_the_safe_loader(tmp_path):
+    fill = OutOfViewFill.for_task("ClothFold", image_size=64, keys=("state", "state_estimate"))
+    save_checkpoint(tmp_path / "f.pt", {"fill": fill.state_dict()})
+    again = OutOfViewFill.from_state_dict(load_checkpoint(tmp_path / "f.pt")["fill"])
+    assert again == fill and again.keys == ("state", "state_estimate")
+    x = _states(IN_VIEW[1], OUT_OF_VIEW[0], batch=(5,))
+    assert torch.equal(again.mask(x), fill.mask(x))
+
+
+def test_camera_matrix_without_gl_is_the_rendering_envs():
+    from trakdis.envs.cloth_env import ENV_CLASSES
+
+    for task, size in (("ClothFold", 32), ("ClothFoldDiagonalUnpinned", 48)):
+        env = ENV_CLASSES[task](from_pixels=True, image_size=size)
+        try:
+            env.reset(seed=0)
+            np.testing.assert_allclose(fixed_camera_matrix(size), env.camera_matrix(), rtol=1e-12, atol=1e-9)
+        finally:
+            env.close()
