@@ -65,6 +65,18 @@ def mujoco_gl_backend() -> str | None:
     return ctx.__module__.rsplit(".", 1)[-1] if ctx is not None else None
 
 
+def camera_projection(pos, rot, fovy_deg: float, image_size: int) -> np.ndarray:
+    """3 x 4 projection from world coordinates to pixel coordinates (u right, v down, pixel centres
+    at integer + 0.5) of a MuJoCo camera at ``pos`` whose axes (x, y, z) are the columns of ``rot``,
+    with vertical field of view ``fovy_deg`` degrees, in an ``image_size`` square image."""
+    f = 0.5 * image_size / np.tan(0.5 * np.deg2rad(fovy_deg))
+    k = np.array([[f, 0, 0.5 * image_size], [0, f, 0.5 * image_size], [0, 0, 1.0]])
+    # camera frame: x right, y up, looking along -z; image v grows downwards
+    r_wc = np.diag([1.0, -1.0, -1.0]) @ np.asarray(rot, dtype=np.float64).T
+    t = -r_wc @ np.asarray(pos, dtype=np.float64)
+    return k @ np.hstack([r_wc, t[:, None]])
+
+
 class FrameRenderer:
     """Renders the ``main`` camera to ``uint8 [size, size, 3]``.
 
@@ -127,16 +139,8 @@ class FrameRenderer:
 
         model = self._model
         cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "main")
-        pos = data.cam_xpos[cam_id]
         rot = data.cam_xmat[cam_id].reshape(3, 3)  # columns: camera x, y, z axes in world frame
-        fovy = np.deg2rad(model.cam_fovy[cam_id])
-        f = 0.5 * self.size / np.tan(0.5 * fovy)
-        k = np.array([[f, 0, 0.5 * self.size], [0, f, 0.5 * self.size], [0, 0, 1.0]])
-        # camera frame: x right, y up, looking along -z; image v grows downwards
-        flip = np.diag([1.0, -1.0, -1.0])
-        r_wc = flip @ rot.T
-        t = -r_wc @ pos
-        return k @ np.hstack([r_wc, t[:, None]])
+        return camera_projection(data.cam_xpos[cam_id], rot, model.cam_fovy[cam_id], self.size)
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -30,6 +30,7 @@ def fixed_camera_matrix(image_size: int) -> np.ndarray:
     ``ClothEnv(from_pixels=True).camera_matrix()`` (every task has this camera), from the constants
     of :mod:`trakdis.envs.model` alone (no simulator, no OpenGL context)."""
     from trakdis.envs.model import CAMERA_FOVY, CAMERA_POS, CAMERA_XYAXES
+    from trakdis.envs.rendering import camera_projection
 
     x_axis = np.asarray(CAMERA_XYAXES[:3], dtype=np.float64)
     y_axis = np.asarray(CAMERA_XYAXES[3:], dtype=np.float64)
@@ -38,11 +39,7 @@ def fixed_camera_matrix(image_size: int) -> np.ndarray:
     y_axis = y_axis - x_axis * (x_axis @ y_axis)
     y_axis = y_axis / np.linalg.norm(y_axis)
     rot = np.stack([x_axis, y_axis, np.cross(x_axis, y_axis)], axis=1)  # columns: camera axes in the world
-    pos = np.asarray(CAMERA_POS, dtype=np.float64)
-    f = 0.5 * image_size / np.tan(0.5 * np.deg2rad(CAMERA_FOVY))
-    k = np.array([[f, 0, 0.5 * image_size], [0, f, 0.5 * image_size], [0, 0, 1.0]])
-    r_wc = np.diag([1.0, -1.0, -1.0]) @ rot.T  # camera frame: x right, y up, looking along -z; v grows downwards
-    return k @ np.hstack([r_wc, (-r_wc @ pos)[:, None]])
+    return camera_projection(CAMERA_POS, rot, CAMERA_FOVY, image_size)
 
 
 class OutOfViewFill:
