@@ -43,20 +43,23 @@ def test_compare_scores_pairs_the_same_episodes():
 
 
 def test_run_and_the_experts_cached_baseline(tmp_path):
-    evals = EvalProtocol("ClothFoldDiagonalPinned", horizon=3, episodes=1, num_envs=1, seed=10_000)
+    evals = EvalProtocol("ClothFoldDiagonalPinned", horizon=3, episodes=2, num_envs=1, seed=10_000)
     expert = load_policy("expert", task=evals.task, horizon=evals.horizon)
     env = expert.make_env(num_envs=1, split="eval")
     try:
         run = FakeRun()
         res = evals.run(run, expert, env, step=7, tag="expert", prefix="x")
-        assert len(res.final_performance) == 1 and run.rows[0][0] == 7 and "x/return" in run.rows[0][1]
+        assert len(res.final_performance) == 2 and run.rows[0][0] == 7 and "x/return" in run.rows[0][1]
+        assert res.final_performance[0] != res.final_performance[1]  # two configurations
         phases = PhaseTimer()
-        scores = evals.expert_baseline(run, env, phases, cache_root=tmp_path)
-        assert np.array_equal(scores, res.final_performance)  # the same configurations
+        scores = evals.expert_baseline(run, env, phases, cache_root=tmp_path, episodes=1)
+        assert np.array_equal(scores, res.final_performance[:1])  # the first configuration of the run's
         assert phases.records["expert evaluation"]["episodes"] == 1 and "cached in" in run.lines[-1]
-        again = evals.expert_baseline(run, env, PhaseTimer(), cache_root=tmp_path)
+        again = evals.expert_baseline(run, env, PhaseTimer(), cache_root=tmp_path, episodes=1)
         assert np.array_equal(again, scores) and "measured once, cached in" in run.lines[-1]
         assert run.rows[-1] == (0, run.rows[-2][1])  # logged under eval_expert/ at step 0 both times
+        assert len(evals.expert_baseline(run, env, PhaseTimer(), cache_root=tmp_path)) == 2  # all: another file
+        assert len(list((tmp_path / "expert_scores").glob("*.json"))) == 2
     finally:
         env.close()
 
@@ -64,8 +67,8 @@ def test_run_and_the_experts_cached_baseline(tmp_path):
 def test_background_expert_baseline_is_booked_and_cached(tmp_path):
     evals = EvalProtocol("ClothFoldDiagonalPinned", horizon=3, episodes=1, num_envs=1, seed=10_000)
     run, phases = FakeRun(), PhaseTimer()
-    job = evals.expert_baseline(run, None, phases, cache_root=tmp_path, background=True)
-    assert isinstance(job, BackgroundEvaluation)
+    job = evals.expert_baseline(run, None, phases, cache_root=tmp_path, background=True, episodes=5)
+    assert isinstance(job, BackgroundEvaluation) and job.num_episodes == 1  # at most the protocol's episodes
     res = evals.finish_background(run, job, phases, "scripted expert", step=0, tag="scripted expert",
                                   prefix="eval_expert")
     assert "evaluation (scripted expert, background)" in phases.background and len(res.final_performance) == 1

@@ -105,16 +105,16 @@ class EvalProtocol:
 
     def run(self, run: Any, handle: Any, env: Any, *, step: int, tag: str, prefix: str = "eval",
             keep_mode: nn.Module | None = None, state_error_cm: Callable[[Any], dict] | None = None,
-            desc: str | None = None) -> EpisodeResults:
+            desc: str | None = None, episodes: int | None = None) -> EpisodeResults:
         """Play the episodes of ``handle`` (a :class:`~trakdis.policies.PolicyHandle`) in ``env`` and
-        log them (:func:`log_scores`). ``keep_mode``: a module whose train/eval mode is restored
+        log them (:func:`log_scores`); ``episodes``: only the first so many (default: all). ``keep_mode``: a module whose train/eval mode is restored
         afterwards (default: the handle's actor). ``state_error_cm`` (a task spec's): also log the
         encoder's error on the visited states, ``<prefix>/encoder_<group>``, for a policy reading
         images."""
         keep_mode = handle.actor if keep_mode is None else keep_mode
         was_training = keep_mode.training if keep_mode is not None else False
         errors = state_error_cm is not None and handle.uses_pixels
-        res = run_episodes(env, handle.make_policy(seed=self.policy_seed), self.episodes, max_steps=self.horizon,
+        res = run_episodes(env, handle.make_policy(seed=self.policy_seed), episodes or self.episodes, max_steps=self.horizon,
                            desc=desc if desc is not None else f"eval ({tag})", seed=self.seed, keep_episodes=errors,
                            collector=self.collector)
         if keep_mode is not None:
@@ -149,10 +149,11 @@ class EvalProtocol:
             close_env(env)
 
     # ------------------------------------------------------------------ background evaluations
-    def in_background(self, spec: str | Path, phases: PhaseTimer) -> BackgroundEvaluation:
-        """These episodes of the policy file ``spec`` (or ``"expert"``) in a background process at low
-        priority, left out of ``phases`` until :meth:`finish_background` books it."""
-        job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=self.episodes,
+    def in_background(self, spec: str | Path, phases: PhaseTimer, episodes: int | None = None) -> BackgroundEvaluation:
+        """These episodes (the first ``episodes`` of them) of the policy file ``spec`` (or ``"expert"``)
+        in a background process at low priority, left out of ``phases`` until :meth:`finish_background`
+        books it."""
+        job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=episodes or self.episodes,
                                    num_envs=self.num_envs, env_seed=self.seed, policy_seed=self.policy_seed)
         phases.exclude(job.pid)
         return job
@@ -163,10 +164,10 @@ class EvalProtocol:
         :meth:`expert_baseline` also writes the expert's score cache."""
         with phases.phase(f"waiting for the background evaluation ({what})"):
             res = job.result()  # its CPU seconds join RUSAGE_CHILDREN here: booked to its own row at once
-            phases.add_background(f"evaluation ({what}, background)", job.pid, episodes=self.episodes,
+            phases.add_background(f"evaluation ({what}, background)", job.pid, episodes=job.num_episodes,
                                   wall=job.wall_seconds, cpu=job.cpu_seconds, workers=1)
         log_scores(run, step, prefix, tag, res.final_performance, res.returns,
-                   detail=f"{self.episodes} episodes in {job.wall_seconds:.0f} s in a background process")
+                   detail=f"{job.num_episodes} episodes in {job.wall_seconds:.0f} s in a background process")
         if getattr(job, "cache_path", None) is not None:
             self._cache(run, job.cache_path, job.cache_key, res)
         return res
@@ -206,23 +207,28 @@ class EvalProtocol:
 
     # ------------------------------------------------------------------ the scripted expert
     def expert_scores(self, run: Any, env: Any, phases: PhaseTimer, *, cache_root: str | Path, use_cache: bool = True,
-                      background: bool = False, on_scores: Callable[[np.ndarray], Any] | None = None) -> None:
+                      background: bool = False, episodes: int | None = None,
+                      on_scores: Callable[[np.ndarray], Any] | None = None) -> None:
         """:meth:`expert_baseline`, its scores passed to ``on_scores``: now, or (measured in the
         background) by :meth:`finish_pending`."""
-        scores = self.expert_baseline(run, env, phases, cache_root=cache_root, use_cache=use_cache, background=background)
+        scores = self.expert_baseline(run, env, phases, cache_root=cache_root, use_cache=use_cache, background=background,
+                                      episodes=episodes)
         if isinstance(scores, BackgroundEvaluation):
             self._pending.append((scores, "scripted expert", 0, "scripted expert", "eval_expert", on_scores))
         elif on_scores is not None:
             on_scores(scores)
 
     def expert_baseline(self, run: Any, env: Any, phases: PhaseTimer, *, cache_root: str | Path,
-                        use_cache: bool = True, background: bool = False) -> np.ndarray | BackgroundEvaluation:
-        """The scripted expert's scores on these episodes, logged under ``eval_expert/`` at step 0:
-        read from the cache under ``cache_root`` (``use_cache``), or measured and cached. Measured
-        with ``background``: returns a :class:`BackgroundEvaluation` for :meth:`finish_background`
-        (which caches it); else on ``env`` (a DT policy's eval env: the expert ignores its
-        return-to-go)."""
-        key = expert_score_key(task=self.task, split="eval", horizon=self.horizon, episodes=self.episodes,
+                        use_cache: bool = True, background: bool = False,
+                        episodes: int | None = None) -> np.ndarray | BackgroundEvaluation:
+        """The scripted expert's scores on these episodes (the first ``episodes`` of them: the same
+        configurations as the first ``episodes`` of every evaluation), logged under ``eval_expert/``
+        at step 0: read from the cache under ``cache_root`` (``use_cache``), or measured and cached.
+        Measured with ``background``: returns a :class:`BackgroundEvaluation` for
+        :meth:`finish_background` (which caches it); else on ``env`` (a DT policy's eval env: the
+        expert ignores its return-to-go)."""
+        episodes = min(episodes or self.episodes, self.episodes)
+        key = expert_score_key(task=self.task, split="eval", horizon=self.horizon, episodes=episodes,
                                seed=self.seed, num_envs=self.num_envs)
         path = expert_score_path(cache_root, key)
         cached = read_expert_scores(path, key) if use_cache else None
@@ -232,14 +238,14 @@ class EvalProtocol:
                        detail=f"measured once, cached in {path}")
             return scores
         if background:
-            job = self.in_background("expert", phases)
+            job = self.in_background("expert", phases, episodes=episodes)
             job.cache_path, job.cache_key = path, key
             return job
         from trakdis.policies import load_policy
 
         expert = load_policy("expert", task=self.task, horizon=self.horizon)
-        with phases.phase("expert evaluation", episodes=self.episodes, workers=self.num_envs):
-            res = self.run(run, expert, env, step=0, tag="scripted expert", prefix="eval_expert")
+        with phases.phase("expert evaluation", episodes=episodes, workers=self.num_envs):
+            res = self.run(run, expert, env, step=0, tag="scripted expert", prefix="eval_expert", episodes=episodes)
         self._cache(run, path, key, res)
         return res.final_performance
 
