@@ -68,7 +68,7 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """which trajectory a rollout replaces in a full buffer: the lowest-return one if it beats it, or the oldest"""
     early_windows: bool = True
     """also sample windows that begin before an episode's first step (the DT/ODT reference: --no-early-windows)"""
-    offline_updates: int = 1000
+    offline_updates: int = 1500
     """offline pretraining updates"""
     online_rounds: int = 8
     """online rounds (roll out, add to the buffer, update)"""
