@@ -229,7 +229,7 @@ def main(argv=None) -> dict:
         res = offline_res if cfg.online_rounds == 0 and offline_res is not None else evals.evaluate(  # no update since
             run, handle, eval_env, phases, "final teacher", step=state["updates"], tag="after online fine-tuning")
         evals.finish_pending(run, phases)  # the offline teacher's and the expert's background evaluations
-    state["final_eval"] = float(res.final_performance.mean())
+    state.update(final_eval=float(res.final_performance.mean()), final_scores=res.final_performance.tolist())
     with phases.phase("files and curves"):  # 5. save
         handle.save(run.dir / "policy.pt", dt_cfg)
         state.save()
