@@ -107,14 +107,15 @@ class EvalProtocol:
             keep_mode: nn.Module | None = None, state_error_cm: Callable[[Any], dict] | None = None,
             desc: str | None = None, episodes: int | None = None) -> EpisodeResults:
         """Play the episodes of ``handle`` (a :class:`~trakdis.policies.PolicyHandle`) in ``env`` and
-        log them (:func:`log_scores`); ``episodes``: only the first so many (default: all). ``keep_mode``: a module whose train/eval mode is restored
-        afterwards (default: the handle's actor). ``state_error_cm`` (a task spec's): also log the
-        encoder's error on the visited states, ``<prefix>/encoder_<group>``, for a policy reading
-        images."""
+        log them (:func:`log_scores`); ``episodes``: only the first so many (default: all).
+        ``keep_mode``: a module whose train/eval mode is restored afterwards (default: the handle's
+        actor). ``state_error_cm`` (a task spec's): also log the encoder's error on the visited
+        states, ``<prefix>/encoder_<group>``, for a policy reading images."""
         keep_mode = handle.actor if keep_mode is None else keep_mode
         was_training = keep_mode.training if keep_mode is not None else False
         errors = state_error_cm is not None and handle.uses_pixels
-        res = run_episodes(env, handle.make_policy(seed=self.policy_seed), episodes or self.episodes, max_steps=self.horizon,
+        episodes = self.episodes if episodes is None else episodes
+        res = run_episodes(env, handle.make_policy(seed=self.policy_seed), episodes, max_steps=self.horizon,
                            desc=desc if desc is not None else f"eval ({tag})", seed=self.seed, keep_episodes=errors,
                            collector=self.collector)
         if keep_mode is not None:
@@ -153,7 +154,8 @@ class EvalProtocol:
         """These episodes (the first ``episodes`` of them) of the policy file ``spec`` (or ``"expert"``)
         in a background process at low priority, left out of ``phases`` until :meth:`finish_background`
         books it."""
-        job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=episodes or self.episodes,
+        episodes = self.episodes if episodes is None else episodes
+        job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=episodes,
                                    num_envs=self.num_envs, env_seed=self.seed, policy_seed=self.policy_seed)
         phases.exclude(job.pid)
         return job
@@ -227,7 +229,7 @@ class EvalProtocol:
         Measured with ``background``: returns a :class:`BackgroundEvaluation` for
         :meth:`finish_background` (which caches it); else on ``env`` (a DT policy's eval env: the
         expert ignores its return-to-go)."""
-        episodes = min(episodes or self.episodes, self.episodes)
+        episodes = self.episodes if episodes is None else min(episodes, self.episodes)
         key = expert_score_key(task=self.task, split="eval", horizon=self.horizon, episodes=episodes,
                                seed=self.seed, num_envs=self.num_envs)
         path = expert_score_path(cache_root, key)
