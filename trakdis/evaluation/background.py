@@ -91,7 +91,7 @@ class BackgroundEvaluation:
         self.spec, self.num_episodes = str(spec), int(num_episodes)
         if self.spec != "expert" and not Path(spec).exists():
             raise FileNotFoundError(f"background evaluation: no policy file {self.spec}")
-        kwargs = dict(task=task, horizon=horizon, num_episodes=int(num_episodes), num_envs=int(num_envs),
+        kwargs = dict(task=task, horizon=horizon, num_episodes=self.num_episodes, num_envs=int(num_envs),
                       env_seed=env_seed, policy_seed=policy_seed, split=split, nice=int(nice))
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=False)
