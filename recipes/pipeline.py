@@ -11,7 +11,10 @@
 3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
-   25/50/75th percentiles and the ratio to the teacher.
+   25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a
+   low-priority background process from the end of stage 1 on, on the core that the encoder's and
+   the student's training leave idle (``--no-background-expert``: after them); the teacher's and
+   the student's on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
 
 Each stage is an ordinary run of its recipe under ``<root>/<recipe>/<name>-<stage>``; a stage whose
 output file exists is skipped and an interrupted one is resumed, so ``--resume`` continues the
@@ -23,10 +26,12 @@ the teacher and encoder stages (the student inherits it from the teacher). Write
 from __future__ import annotations
 
 import importlib.util
+import os
 import shlex
+import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
@@ -57,6 +62,10 @@ class PipelineConfig(RunConfig):
     """extra options for recipes/distill.py"""
     mask_unseen_pickers: bool = False
     """pass --mask-unseen-pickers to the teacher and encoder stages (pickers out of the camera view masked)"""
+    background_expert: bool = True
+    """evaluate the scripted expert in a low-priority background process while the encoder and student train"""
+    parallel: bool = True
+    """evaluate the teacher and the student on 2 worker processes (--no-parallel: in turn; the same numbers)"""
 
 
 def recipe(name: str):
@@ -68,26 +77,56 @@ def recipe(name: str):
     return module
 
 
-def stage(run: Run, name: str, run_name: str, output: str, args: list[str], timings: dict[str, float]) -> Path:
+@dataclass
+class BackgroundStage:
+    """A stage running as a subprocess (:func:`stage` with ``background=True``)."""
+
+    proc: subprocess.Popen
+    directory: Path
+    started: float = field(default_factory=time.perf_counter)
+
+
+def stage(run: Run, name: str, run_name: str, output: str, args: list[str], timings: dict[str, float],
+          background: bool = False) -> Path | BackgroundStage:
     """Run ``recipes/<name>.py`` as ``<root>/<name>/<run_name>`` unless its ``output`` exists; its
-    wall time goes to ``timings[run_name]``."""
+    wall time goes to ``timings[run_name]``. With ``background``, start it instead as a low-priority
+    subprocess (output in ``<run dir>/<run_name>.log``) and return it, for :func:`finish_background`."""
     cfg = run.cfg
     directory = Path(cfg.root) / name / run_name
     if (directory / output).exists():
         run.print(f"{name}: {directory / output} exists, skipped")
         return directory
     common = ["--name", run_name, "--root", cfg.root, "--seed", str(cfg.seed), "--threads", str(cfg.threads)]
-    if not cfg.progress:
+    if not cfg.progress or background:
         common.append("--no-progress")
     if cfg.logger != "csv":
         common += ["--logger", cfg.logger]
     if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv")):
         common.append("--resume")  # an interrupted stage continues (evaluate.py starts over)
+    if background:
+        run.print(f"{name}: {run_name} started in the background (log: {run.dir / run_name}.log)")
+        with open(run.dir / f"{run_name}.log", "w") as log:
+            return BackgroundStage(subprocess.Popen([sys.executable, str(RECIPES / f"{name}.py"), *common, *args],
+                                                    stdout=log, stderr=subprocess.STDOUT, preexec_fn=lambda: os.nice(10)),
+                                   directory)
     start = time.perf_counter()
     recipe(name).main([*common, *args])
     timings[run_name] = time.perf_counter() - start
     run.print(f"{name}: done in {timings[run_name]:.0f} s ({directory})")
     return directory
+
+
+def finish_background(run: Run, job: Path | BackgroundStage, timings: dict[str, float]) -> Path:
+    """Wait for a stage that :func:`stage` started in the background (a directory: it was skipped);
+    its wall time since the start goes to ``timings`` as ``<run_name> (background)``."""
+    if not isinstance(job, BackgroundStage):
+        return job
+    name = job.directory.name
+    if job.proc.wait() != 0:
+        raise RuntimeError(f"background stage {name} failed (exit code {job.proc.returncode}); see {run.dir / name}.log")
+    timings[f"{name} (background)"] = time.perf_counter() - job.started
+    run.print(f"{name}: done in the background ({job.directory})")
+    return job.directory
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -98,16 +137,25 @@ def main(argv=None) -> pd.DataFrame:
     mask = ["--mask-unseen-pickers"] if cfg.mask_unseen_pickers else []
     teacher = stage(run, "online_dt", f"{name}-teacher", "policy.pt",
                     ["--task", cfg.task, "--collect-pixels", *mask, *shlex.split(cfg.teacher_args)], timings)
-    encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
-                    ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)], timings)
-    student = stage(run, "distill", f"{name}-student", "policy.pt",
-                    ["--teacher", str(teacher), "--encoder", str(encoder), *shlex.split(cfg.student_args)], timings)
     rows = []
     horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
-    for label, policy in (("expert", "expert"), ("teacher", str(teacher)), ("student", str(student))):
-        directory = stage(run, "evaluate", f"{name}-eval-{label}", "summary.csv",
-                          ["--policy", policy, "--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials),
-                           "--videos", "0"], timings)
+    evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
+    expert = stage(run, "evaluate", f"{name}-eval-expert", "summary.csv", ["--policy", "expert", *evaluate], timings,
+                   background=cfg.background_expert)
+    try:
+        encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
+                        ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)], timings)
+        student = stage(run, "distill", f"{name}-student", "policy.pt",
+                        ["--teacher", str(teacher), "--encoder", str(encoder), *shlex.split(cfg.student_args)], timings)
+        directories = {"expert": finish_background(run, expert, timings)}
+    finally:
+        if isinstance(expert, BackgroundStage) and expert.proc.poll() is None:  # an error above: do not leave it running
+            expert.proc.terminate()
+    parallel = ["--parallel"] if cfg.parallel else []
+    for label, policy in (("teacher", str(teacher)), ("student", str(student))):
+        directories[label] = stage(run, "evaluate", f"{name}-eval-{label}", "summary.csv",
+                                   ["--policy", policy, *evaluate, *parallel], timings)
+    for label, directory in directories.items():
         row = pd.read_csv(directory / "summary.csv").iloc[0].to_dict()
         rows.append({**row, "policy": label})
     teacher_mean = rows[1]["mean"]

@@ -303,7 +303,8 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     """recipes/pipeline.py: teacher, encoder, student and the three evaluations, then one table;
     a second call finds every stage's output and only rebuilds the table. With --mask-unseen-pickers
     (the default-off runs are the fixtures'): the teacher's policy file carries the fill, the encoder
-    learns masked labels, the student rounds and the student act with it."""
+    learns masked labels, the student rounds and the student act with it. The expert's evaluation
+    runs in the background meanwhile."""
     # --no-parallel: the same numbers (test_online_dt_serial_envs...), without starting worker processes
     teacher = " ".join(map(str, online_dt_args("unused")[2:]))
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
@@ -311,8 +312,9 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
                                  "--student-episodes", 2, "--student-epochs", 1]))
     student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--eval-episodes", 2, "--batch-size", 8, *DATA]))
     args = ["--name", "pipe", "--trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
-            f"--student-args={student}", "--threads", 1, "--mask-unseen-pickers"]
+            f"--student-args={student}", "--threads", 1, "--mask-unseen-pickers", "--no-parallel"]
     out = run_recipe(workdir, "pipeline", *args, timeout=400)
+    assert "pipe-eval-expert started in the background" in out.stdout
     assert "of the training images' picker positions are out of view" in out.stdout
     for run_dir in ("online_dt/pipe-teacher", "distill/pipe-student"):
         assert load_policy(workdir / "runs" / run_dir).normalizer.fill is not None, run_dir
