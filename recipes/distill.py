@@ -35,10 +35,8 @@ class DistillConfig(OptimConfig, RunConfig):
     """encoder.pt or train_encoder run directory ('latest': the newest run under <root>/train_encoder)"""
     weight_copy: bool = True
     """initialise the student with the teacher's weights (--no-weight-copy: ablation No-Pretrain)"""
-    distill: bool = True
-    """learn from the teacher's actions (--no-distill: imitate the expert dataset instead)"""
-    state_noise: float = 0.0
-    """std of Gaussian noise added to the estimated state while training (robustness)"""
+    distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
+    state_noise: float = 0.0  # std of Gaussian noise added to the estimated state while training (robustness)
     proprio_pickers: bool = False
     """take the student's picker positions from proprioception (the true state), not the encoder"""
     act: Literal["student", "teacher", "mixed"] = "teacher"
@@ -47,40 +45,26 @@ class DistillConfig(OptimConfig, RunConfig):
     """what the teacher reads to label a step: the whole window or that step's tokens alone"""
     expert_data: bool = True
     """distil on the expert dataset's episodes (--data.*): their images through the encoder, their true states"""
-    rounds: int = 10
-    """rounds of (roll out, update); --no-distill: rounds of updates only"""
+    rounds: int = 10  # rounds of (roll out, update); --no-distill: rounds of updates only
     episodes_per_round: int = 0
     """episodes rolled out per round and added to the distillation data (0: the expert dataset only)"""
-    updates_per_round: int = 50
-    """updates per round"""
-    batch_size: int = 64
-    """windows per update"""
-    lr: float = 1e-4
-    """learning rate"""
-    warmup_steps: int = 20
-    """linear learning-rate warm-up (updates)"""
+    updates_per_round: int = 50  # updates per round
+    batch_size: int = 64  # windows per update
+    lr: float = 1e-4  # learning rate
+    warmup_steps: int = 20  # linear learning-rate warm-up (updates)
     loss_function: Literal["nll", "mse"] = "nll"
     """distillation loss: the student's NLL of the teacher's action (the paper), or the squared error of the means"""
     return_to_go: Literal["acting", "hindsight"] = "acting"
     """return-to-go of the rollouts' windows: the acting policy's countdown, or the hindsight return reached"""
-    kl_coef: float = 0.0
-    """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
-    buffer_capacity: int = 200
-    """trajectories kept for distillation"""
-    early_windows: bool = True
-    """also sample windows that begin before an episode's first step (see online_dt.py)"""
-    data: DataConfig = field(default_factory=DataConfig)
-    """expert dataset for --no-distill and --expert-data"""
-    eval_episodes: int = 10
-    """evaluation episodes (eval split)"""
-    eval_every: int = 5
-    """evaluate every N rounds (and before training and at the end; 0: only then)"""
-    eval_teacher: bool = True
-    """also evaluate the teacher on the evaluation episodes"""
-    num_envs: int = 2
-    """environments stepped together"""
-    parallel: bool = False
-    """step them in subprocesses (ParallelEnv)"""
+    kl_coef: float = 0.0  # weight of an extra teacher-student KL term (0: the paper's NLL only)
+    buffer_capacity: int = 200  # trajectories kept for distillation
+    early_windows: bool = True  # also sample windows that begin before an episode's first step (see online_dt.py)
+    data: DataConfig = field(default_factory=DataConfig)  # expert dataset for --no-distill and --expert-data
+    eval_episodes: int = 10  # evaluation episodes (eval split)
+    eval_every: int = 5  # evaluate every N rounds (and before training and at the end; 0: only then)
+    eval_teacher: bool = True  # also evaluate the teacher on the evaluation episodes
+    num_envs: int = 2  # environments stepped together
+    parallel: bool = False  # step them in subprocesses (ParallelEnv)
 
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,

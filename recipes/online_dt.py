@@ -36,46 +36,33 @@ from trakdis.utils.run import Run, RunConfig, RunState
 class OnlineDTConfig(OptimConfig, RunConfig):
     """Teacher: offline Decision Transformer pretraining on expert data, then online fine-tuning."""
 
-    task: TaskName = "ClothFold"
-    """cloth task"""
-    horizon: int = 100
-    """episode length"""
-    data: DataConfig = field(default_factory=DataConfig)
-    """expert dataset"""
-    model: DTConfig = field(default_factory=DTConfig)
-    """Decision Transformer"""
+    task: TaskName = "ClothFold"  # cloth task
+    horizon: int = 100  # episode length
+    data: DataConfig = field(default_factory=DataConfig)  # expert dataset
+    model: DTConfig = field(default_factory=DTConfig)  # Decision Transformer
     min_lr_fraction: float = 0.1
     """cosine decay of the learning rate to this fraction of --lr by the end of pretraining (1: constant)"""
     online_lr: Optional[float] = None
     """constant learning rate of the online phase (default: the last offline one, --lr x --min-lr-fraction)"""
-    batch_size: int = 64
-    """windows per update"""
-    lambda_entropy: float = 0.1
-    """entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature"""
-    learn_temperature: bool = False
-    """learn the entropy temperature toward a target entropy of -action_dim (Online DT)"""
-    state_scale_floor: float = 1e-3
-    """lower bound (metres) of the state normaliser's per-dimension scale"""
+    batch_size: int = 64  # windows per update
+    lambda_entropy: float = 0.1  # entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature
+    learn_temperature: bool = False  # learn the entropy temperature toward a target entropy of -action_dim (Online DT)
+    state_scale_floor: float = 1e-3  # lower bound (metres) of the state normaliser's per-dimension scale
     state_noise: float = 0.0
     """std (metres) of Gaussian noise on the states of every training window (the acting state stays exact)"""
     mask_unseen_pickers: bool = False
     """train and act with each picker out of the 32x32 camera view replaced by a fixed sentinel xyz"""
-    rtg_scale: float = 1.0
-    """return-to-go scale (rewards and targets are multiplied by it)"""
+    rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)
     buffer_capacity: Optional[int] = None
     """trajectories in the replay buffer (default: as many as the offline dataset has)"""
     buffer_replacement: Literal["oldest", "lowest_return"] = "lowest_return"
     """which trajectory a rollout replaces in a full buffer: the lowest-return one if it beats it, or the oldest"""
     early_windows: bool = True
     """also sample windows that begin before an episode's first step (the DT/ODT reference: --no-early-windows)"""
-    offline_updates: int = 1500
-    """offline pretraining updates"""
-    online_rounds: int = 8
-    """online rounds (roll out, add to the buffer, update)"""
-    episodes_per_round: int = 8
-    """episodes rolled out per online round (train split; their actions: --exploration)"""
-    updates_per_round: int = 150
-    """updates after each online rollout"""
+    offline_updates: int = 1500  # offline pretraining updates
+    online_rounds: int = 8  # online rounds (roll out, add to the buffer, update)
+    episodes_per_round: int = 8  # episodes rolled out per online round (train split; their actions: --exploration)
+    updates_per_round: int = 150  # updates after each online rollout
     exploration_rtg: Optional[float] = None
     """initial return-to-go of the online rollouts (default: the evaluation target)"""
     offline_control: bool = False
@@ -84,30 +71,23 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     """actions of the online rollouts: the policy's mean, or samples as in Online DT"""
     eval_rtg: Optional[float] = None
     """initial return-to-go at evaluation (default: the best return of the offline data)"""
-    eval_episodes: int = 30
-    """evaluation episodes (eval split; the same configurations for every evaluation of a run)"""
-    eval_every: int = 0
-    """also evaluate every N online rounds (0: only after pretraining and at the end)"""
-    eval_expert: bool = True
-    """also evaluate the scripted expert on the evaluation episodes, for comparison"""
-    expert_episodes: int = 10
-    """the expert on only the first N of them (its scores vary little: std ~0.04)"""
+    eval_episodes: int = 30  # evaluation episodes (eval split; the same configurations for every evaluation of a run)
+    eval_every: int = 0  # also evaluate every N online rounds (0: only after pretraining and at the end)
+    eval_expert: bool = True  # also evaluate the scripted expert on the evaluation episodes, for comparison
+    expert_episodes: int = 10  # the expert on only the first N of them (its scores vary little: std ~0.04)
     expert_cache: bool = True
     """reuse the expert's evaluation cached in <data.root>/expert_scores/ (--no-expert-cache: measure again)"""
     background_eval: bool = True
     """evaluate the expert and the offline teacher in a low-priority background process (same numbers)"""
-    collect_pixels: bool = False
-    """also store the 32x32 images in the dataset this run collects (for train_encoder.py)"""
+    collect_pixels: bool = False  # also store the 32x32 images in the dataset this run collects (for train_encoder.py)
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together (default: the available cores, at most 2); sets the eval configurations"""
     parallel: bool = True
     """step them in worker processes (ParallelEnv); --no-parallel: in turn in this process (same numbers)"""
     collector: Literal["sync", "multi_sync"] = "sync"
     """how batches of episodes are stepped: one Collector here, or a MultiSyncCollector of --num-envs processes"""
-    log_every: int = 50
-    """log training metrics every N updates"""
-    checkpoint_every: int = 500
-    """checkpoint every N offline updates (online: after every round)"""
+    log_every: int = 50  # log training metrics every N updates
+    checkpoint_every: int = 500  # checkpoint every N offline updates (online: after every round)
 
     def __post_init__(self):
         if self.horizon < 1:  # checked while parsing, before the run directory exists

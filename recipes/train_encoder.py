@@ -29,50 +29,30 @@ from trakdis.utils.run import Run, RunConfig, RunState
 class TrainEncoderConfig(RunConfig):
     """Train the CNN state encoder on the expert dataset's images and states."""
 
-    task: TaskName = "ClothFold"
-    """cloth task"""
-    horizon: int = 100
-    """episode length of the dataset"""
-    data: DataConfig = field(default_factory=DataConfig)
-    """expert dataset (with pixels)"""
-    image_size: int = 32
-    """image side"""
-    epochs: int = 20
-    """passes over the training images"""
-    batch_size: int = 128
-    """images per update"""
-    lr: float = 1e-3
-    """learning rate (AdamW)"""
-    weight_decay: float = 1e-4
-    """weight decay"""
-    aug: bool = True
-    """augment (random shift + label-consistent horizontal flip) while training"""
-    flip_prob: float = 0.5
-    """probability of the mirrored image"""
-    pad: int = 2
-    """random-shift padding in pixels"""
-    channels: tuple[int, ...] = (32, 32, 32, 32)
-    """channels of the 4 conv layers"""
-    hidden_dim: int = 256
-    """width of the MLP head"""
-    head: str = "flatten"
-    """encoder head: 'flatten' (conv features -> MLP) or 'keypoints' (spatial soft-argmax)"""
-    stem_stride: int = 2
-    """stride of the first conv layer (1 keeps the full resolution)"""
-    coord_channels: bool = False
-    """append pixel-coordinate channels to the image (CoordConv)"""
+    task: TaskName = "ClothFold"  # cloth task
+    horizon: int = 100  # episode length of the dataset
+    data: DataConfig = field(default_factory=DataConfig)  # expert dataset (with pixels)
+    image_size: int = 32  # image side
+    epochs: int = 20  # passes over the training images
+    batch_size: int = 128  # images per update
+    lr: float = 1e-3  # learning rate (AdamW)
+    weight_decay: float = 1e-4  # weight decay
+    aug: bool = True  # augment (random shift + label-consistent horizontal flip) while training
+    flip_prob: float = 0.5  # probability of the mirrored image
+    pad: int = 2  # random-shift padding in pixels
+    channels: tuple[int, ...] = (32, 32, 32, 32)  # channels of the 4 conv layers
+    hidden_dim: int = 256  # width of the MLP head
+    head: str = "flatten"  # encoder head: 'flatten' (conv features -> MLP) or 'keypoints' (spatial soft-argmax)
+    stem_stride: int = 2  # stride of the first conv layer (1 keeps the full resolution)
+    coord_channels: bool = False  # append pixel-coordinate channels to the image (CoordConv)
     extra_noise: tuple[float, ...] = ()
     """also train on datasets of the same size collected with these expert movement noises"""
-    val_fraction: float = 0.1
-    """fraction of the episodes held out for validation"""
+    val_fraction: float = 0.1  # fraction of the episodes held out for validation
     teacher: str = ""
     """teacher policy file or online_dt run directory: also train on the weight-copied student's images"""
-    student_rounds: int = 2
-    """rounds of (student rollouts, training) with --teacher"""
-    student_episodes: int = 20
-    """student rollouts per round"""
-    student_epochs: int = 5
-    """passes over all training images after each round's rollouts"""
+    student_rounds: int = 2  # rounds of (student rollouts, training) with --teacher
+    student_episodes: int = 20  # student rollouts per round
+    student_epochs: int = 5  # passes over all training images after each round's rollouts
     mask_unseen_pickers: bool = False
     """label each picker out of the camera view with a fixed sentinel xyz (for a teacher trained so)"""
 
