@@ -24,11 +24,13 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import torch
+from tensordict import TensorDict
 from torch import nn
 
 from trakdis.envs.batched import make_batched_env
 from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
 from trakdis.transforms.normalization import ProprioceptionOverride, StateNormalizer
+from trakdis.transforms.visibility import OutOfViewFill
 from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 __all__ = [
@@ -254,8 +256,6 @@ def check_unseen_picker_mask(teacher: PolicyHandle, encoder_file: Mapping[str, A
     both files and the flag unless the encoder (``encoder_file``: an encoder file's dict, read from
     ``encoder_source``; ``train_encoder.py --mask-unseen-pickers`` records ``mask_unseen_pickers``
     and ``out_of_view_fill``) was trained on labels masked the same way."""
-    from trakdis.transforms import OutOfViewFill
-
     fill = None if teacher.normalizer is None else teacher.normalizer.fill
     encoder_masked = bool(encoder_file.get("mask_unseen_pickers", False))
     if (fill is not None) != encoder_masked:
@@ -295,14 +295,15 @@ def load_teacher_and_encoder(teacher: str | Path, encoder: str | Path, *, root: 
 
 
 def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int,
-                          image_size: int = 32, num_envs: int = 2, label_fill: Any = None):
+                          image_size: int = 32, num_envs: int = 2,
+                          label_fill: OutOfViewFill | None = None) -> tuple[TensorDict, dict[str, float]]:
     """``(steps, metrics)``: the ``"pixels"`` and true ``"state"`` of every step of ``episodes``
     train-split episodes of the weight-copied student of ``teacher`` acting on a frozen copy of
     ``encoder``'s estimates (the states the student visits; ``train_encoder.py --teacher``), and how
     they went: ``normalized_performance`` (mean at the episodes' end) and the estimate's error per
     state group (``task_spec(task).state_error_cm``; against the state the teacher reads, its
     out-of-view pickers masked when its normaliser carries a fill). The returned ``"state"`` is raw,
-    or masked by ``label_fill`` (an :class:`~trakdis.transforms.OutOfViewFill`: the encoder's labels)."""
+    or masked by ``label_fill`` (the labels of an encoder trained with ``--mask-unseen-pickers``)."""
     import copy
 
     from trakdis.envs import close_env, task_spec

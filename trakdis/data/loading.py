@@ -10,11 +10,12 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, NamedTuple, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 from tensordict import TensorDict
 
+from trakdis.transforms import OutOfViewFill, StateNoise, StateNormalizer, chain
 from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.run import RunState
 
@@ -228,25 +229,22 @@ def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float,
 
 def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer, task: str,
                          horizon: int, seed: int, context_len: int, rtg_scale: float = 1.0, min_scale: float = 1e-3,
-                         state_noise: float = 0.0, fill: Any = None, early_windows: bool = False,
+                         state_noise: float = 0.0, fill: OutOfViewFill | None = None, early_windows: bool = False,
                          replacement: str = "oldest", collect_pixels: bool = False, log: Callable[..., None] = print,
-                         progress: bool = True) -> tuple[TrajectoryReplayBuffer, Any]:
+                         progress: bool = True) -> tuple[TrajectoryReplayBuffer, StateNormalizer]:
     """``(buffer, normalizer)``: a teacher's replay buffer of the expert dataset's states and actions,
     its sampled windows standardised by ``normalizer`` (a :class:`~trakdis.transforms.StateNormalizer`
     of ``"state"``, the acting policy's too): with ``state_noise`` > 0, Gaussian noise of that std
-    (seed ``seed + 7919``) on the raw states first; ``fill`` (an
-    :class:`~trakdis.transforms.OutOfViewFill`, optional) carried by the normaliser, which masks the
-    out-of-view pickers before standardising. The data stay raw.
+    (seed ``seed + 7919``) on the raw states first; ``fill`` (``--mask-unseen-pickers``) carried by
+    the normaliser, which masks the out-of-view pickers before standardising. The data stay raw.
 
     ``state`` is the run's :class:`~trakdis.utils.run.RunState`, holding the counters
     ``"normalizer"``, ``"best_return"`` and ``"buffer_capacity"`` (None: the dataset's number of
     episodes). A fresh run loads the dataset (:func:`load_offline_data`), sets the counters (the
     statistics of its real raw states, ``min_scale`` the floor of the std; its best episode return)
-    and fills the buffer. A resumed run reads neither the dataset nor the data: the counters are
-    the checkpoint's, and the buffer, registered as the state's object ``"buffer"``, is filled by
+    and fills the buffer. A resumed run does not read the dataset: the counters are the
+    checkpoint's, and the buffer, registered as the state's object ``"buffer"``, is filled by
     ``state.load()``."""
-    from trakdis.transforms import StateNoise, StateNormalizer, chain
-
     if not state.resuming:
         trajectories, lengths = load_offline_data(cfg, phases=phases, task=task, horizon=horizon, seed=seed,
                                                   collect_pixels=collect_pixels, log=log, progress=progress)
