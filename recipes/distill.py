@@ -97,10 +97,10 @@ def main(argv=None) -> dict:
     updater = cfg.make_updater(loss)
     if proprio_dims:
         obs_keys = tuple(dict.fromkeys([*obs_keys, "state"]))
-    # Sampled windows, in state units, then standardised: No-Distill puts noise on the encoded expert data
-    # here (with distillation the noise is already in the rollouts' estimates); --proprio-pickers the true pickers.
-    transform = chain(StateNoise(cfg.state_noise, in_keys=["state_estimate"]) if not cfg.distill and cfg.state_noise > 0
-                      else None, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
+    # Sampled windows, in state units, then standardised. No-Distill: noise on the encoded expert data here (with
+    # distillation the noise is already in the rollouts' estimates); --proprio-pickers: the true picker positions.
+    noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"]) if not cfg.distill and cfg.state_noise > 0 else None
+    transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
 
     if cfg.episodes_per_round < 0 or (cfg.distill and cfg.episodes_per_round == 0 and not cfg.expert_data):
         raise ValueError(f"--episodes-per-round {cfg.episodes_per_round}: distillation needs rollouts (>= 1) or "
