@@ -23,7 +23,7 @@ from typing import Literal
 
 import torch
 
-from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps, split_episodes_train_val
+from trakdis.data import DataConfig, load_train_val_steps
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import EvalProtocol
 from trakdis.modules.baselines import ImageTrunkConfig
@@ -77,12 +77,9 @@ def main(argv=None) -> dict:
     from trakdis.objectives import BehaviourCloningLoss
 
     spec = task_spec(cfg.task, horizon=cfg.horizon)
-    path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
-                          image_size=cfg.image_size, log=run.print, progress=cfg.progress)
-    data, lengths = load_trajectories(path, keys=("pixels", "action"))
-    train_episodes, val_episodes = split_episodes_train_val(data.shape[0], cfg.val_fraction, seed=cfg.seed)
-    train = real_steps(data, lengths, train_episodes)
-    val = real_steps(data, lengths, val_episodes) if len(val_episodes) else None
+    path, train, val, _, _ = load_train_val_steps(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
+                                                  keys=("pixels", "action"), val_fraction=cfg.val_fraction,
+                                                  image_size=cfg.image_size, log=run.print, progress=cfg.progress)
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation steps")
 
     trunk = cfg.trunk.make(cfg.image_size).to(cfg.device)

@@ -13,15 +13,14 @@ import sys
 from dataclasses import dataclass, field
 from typing import Literal
 
-from trakdis.data import (DataConfig, encode_trajectories, ensure_dataset, episode_to_trajectory, load_trajectories,
-                          make_buffer)
-from trakdis.envs import close_env
-from trakdis.evaluation import EvalProtocol, run_episodes
-from trakdis.optim import OptimConfig, mean_metrics
-from trakdis.policies import check_unseen_picker_mask, load_encoder, load_teacher, weight_copied_student
-from trakdis.transforms import ProprioceptionOverride, chain
-from trakdis.utils.logger import latest_run_file
-from trakdis.utils.progress import progress
+from trakdis.data import DataConfig, load_encoded_dataset, make_buffer
+from trakdis.envs import task_spec
+from trakdis.evaluation import EvalProtocol, RunEnvs, run_episodes
+from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
+from trakdis.optim import OptimConfig
+from trakdis.policies import load_teacher_and_encoder, weight_copied_student
+from trakdis.training import mixture_shares, run_updates
+from trakdis.transforms import ProprioceptionOverride, StateNoise, chain
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -35,10 +34,8 @@ class DistillConfig(OptimConfig, RunConfig):
     """encoder.pt or train_encoder run directory ('latest': the newest run under <root>/train_encoder)"""
     weight_copy: bool = True
     """initialise the student with the teacher's weights (--no-weight-copy: ablation No-Pretrain)"""
-    distill: bool = True
-    """learn from the teacher's actions (--no-distill: imitate the expert dataset instead)"""
-    state_noise: float = 0.0
-    """std of Gaussian noise added to the estimated state while training (robustness)"""
+    distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
+    state_noise: float = 0.0  # std of Gaussian noise added to the estimated state while training (robustness)
     proprio_pickers: bool = False
     """take the student's picker positions from proprioception (the true state), not the encoder"""
     act: Literal["student", "teacher", "mixed"] = "teacher"
@@ -47,40 +44,26 @@ class DistillConfig(OptimConfig, RunConfig):
     """what the teacher reads to label a step: the whole window or that step's tokens alone"""
     expert_data: bool = True
     """distil on the expert dataset's episodes (--data.*): their images through the encoder, their true states"""
-    rounds: int = 10
-    """rounds of (roll out, update); --no-distill: rounds of updates only"""
+    rounds: int = 10  # rounds of (roll out, update); --no-distill: rounds of updates only
     episodes_per_round: int = 0
     """episodes rolled out per round and added to the distillation data (0: the expert dataset only)"""
-    updates_per_round: int = 50
-    """updates per round"""
-    batch_size: int = 64
-    """windows per update"""
-    lr: float = 1e-4
-    """learning rate"""
-    warmup_steps: int = 20
-    """linear learning-rate warm-up (updates)"""
+    updates_per_round: int = 50  # updates per round
+    batch_size: int = 64  # windows per update
+    lr: float = 1e-4  # learning rate
+    warmup_steps: int = 20  # linear learning-rate warm-up (updates)
     loss_function: Literal["nll", "mse"] = "nll"
     """distillation loss: the student's NLL of the teacher's action (the paper), or the squared error of the means"""
     return_to_go: Literal["acting", "hindsight"] = "acting"
     """return-to-go of the rollouts' windows: the acting policy's countdown, or the hindsight return reached"""
-    kl_coef: float = 0.0
-    """weight of an extra teacher-student KL term (0: the paper's NLL only)"""
-    buffer_capacity: int = 200
-    """trajectories kept for distillation"""
-    early_windows: bool = True
-    """also sample windows that begin before an episode's first step (see online_dt.py)"""
-    data: DataConfig = field(default_factory=DataConfig)
-    """expert dataset for --no-distill and --expert-data"""
-    eval_episodes: int = 10
-    """evaluation episodes (eval split)"""
-    eval_every: int = 5
-    """evaluate every N rounds (and before training and at the end; 0: only then)"""
-    eval_teacher: bool = True
-    """also evaluate the teacher on the evaluation episodes"""
-    num_envs: int = 2
-    """environments stepped together"""
-    parallel: bool = False
-    """step them in subprocesses (ParallelEnv)"""
+    kl_coef: float = 0.0  # weight of an extra teacher-student KL term (0: the paper's NLL only)
+    buffer_capacity: int = 200  # trajectories kept for distillation
+    early_windows: bool = True  # also sample windows that begin before an episode's first step (see online_dt.py)
+    data: DataConfig = field(default_factory=DataConfig)  # expert dataset for --no-distill and --expert-data
+    eval_episodes: int = 10  # evaluation episodes (eval split)
+    eval_every: int = 5  # evaluate every N rounds (and before training and at the end; 0: only then)
+    eval_teacher: bool = True  # also evaluate the teacher on the evaluation episodes
+    num_envs: int = 2  # environments stepped together
+    parallel: bool = False  # step them in subprocesses (ParallelEnv)
 
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,
@@ -88,31 +71,11 @@ PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_pe
                      "eval_every": 10, "updates_per_round": 100, "batch_size": 256}}
 
 
-def _episode_shares(cfg: DistillConfig, round_index: int) -> list[int]:
-    """Episodes per acting policy in this round: all for one policy, or DAgger's decaying mixture
-    (teacher share 1 in the first round, 0 in the last)."""
-    if not cfg.distill or cfg.episodes_per_round == 0:
-        return []
-    if cfg.act != "mixed":
-        return [cfg.episodes_per_round]
-    beta = 1.0 - round_index / max(cfg.rounds - 1, 1)
-    n_teacher = round(beta * cfg.episodes_per_round)
-    return [n_teacher, cfg.episodes_per_round - n_teacher]
-
-
 def main(argv=None) -> dict:
     run = Run.start("distill", DistillConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
-    from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
-    from trakdis.envs import task_spec
-    from trakdis.transforms import StateNoise
-
-    teacher = load_teacher(latest_run_file(cfg.teacher, cfg.root, "online_dt", "policy.pt", flag="--teacher"),
-                           device=cfg.device)
-    enc_path = latest_run_file(cfg.encoder, cfg.root, "train_encoder", "encoder.pt", flag="--encoder")
-    encoder, enc_file = load_encoder(enc_path, task=teacher.task)
-    # --mask-unseen-pickers: both trained on it or neither (the teacher's normaliser carries the fill to the student)
-    check_unseen_picker_mask(teacher, enc_file, encoder_source=str(enc_path))
+    teacher, encoder, enc_file, enc_path = load_teacher_and_encoder(cfg.teacher, cfg.encoder, root=cfg.root,
+                                                                    device=cfg.device)
     task, horizon = teacher.task, teacher.horizon
     # Teacher and student read states standardised with the teacher's statistics (the student's
     # weights start as the teacher's, and the encoder's estimates live in state units).
@@ -132,22 +95,18 @@ def main(argv=None) -> dict:
         loss = MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
         obs_keys = ("state_estimate",)
     updater = cfg.make_updater(loss)
-    steps = []  # applied in order to sampled windows, in state units, then standardisation
-    if not cfg.distill and cfg.state_noise > 0:
-        # No-Distill: noise on the encoded expert data at sampling time, in state units (before
-        # standardisation). With distillation the noise is already in the rollouts' estimates.
-        steps.append(StateNoise(cfg.state_noise, in_keys=["state_estimate"]))
     if proprio_dims:
-        steps.append(ProprioceptionOverride(proprio_dims))
         obs_keys = tuple(dict.fromkeys([*obs_keys, "state"]))
-    if normalizer is not None:
-        steps.append(normalizer)
+    # Sampled windows, in state units, then standardised. No-Distill: noise on the encoded expert data here (with
+    # distillation the noise is already in the rollouts' estimates); --proprio-pickers: the true picker positions.
+    noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"]) if not cfg.distill and cfg.state_noise > 0 else None
+    transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
 
     if cfg.episodes_per_round < 0 or (cfg.distill and cfg.episodes_per_round == 0 and not cfg.expert_data):
         raise ValueError(f"--episodes-per-round {cfg.episodes_per_round}: distillation needs rollouts (>= 1) or "
                          f"--expert-data")
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
-                         transform=chain(*steps), early_windows=cfg.early_windows,
+                         transform=transform, early_windows=cfg.early_windows,
                          relabel_return_to_go=not cfg.distill or cfg.expert_data or cfg.return_to_go == "hindsight")
     state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}, step_key="updates",
                      updater=updater, buffer=buffer)
@@ -156,11 +115,10 @@ def main(argv=None) -> dict:
     elif not cfg.distill or cfg.expert_data:
         # The expert dataset's images through the frozen encoder (No-Distill: with the expert's
         # actions as targets; --expert-data: with the teacher's labels on the true states).
-        path = ensure_dataset(cfg.data, task=task, horizon=horizon, seed=cfg.seed, pixels=True, log=run.print,
-                              progress=cfg.progress)
-        data, lengths = load_trajectories(path, keys=("pixels", "action", "reward", "state"))
         keys = ("action", "reward", *(("state",) if cfg.proprio_pickers or cfg.distill else ()))
-        buffer.load_offline(encode_trajectories(data, encoder, keys=keys), lengths)
+        data, lengths, path = load_encoded_dataset(cfg.data, encoder, task=task, horizon=horizon, seed=cfg.seed,
+                                                   keys=keys, log=run.print, progress=cfg.progress)
+        buffer.load_offline(data, lengths)
         run.print(f"{'--expert-data' if cfg.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
 
     evals = EvalProtocol(task, horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
@@ -178,7 +136,7 @@ def main(argv=None) -> dict:
     roll_envs = [h.make_env(num_envs=cfg.num_envs, split="train", state_noise=cfg.state_noise,
                             noise_seed=cfg.seed + 7919 + i, parallel=cfg.parallel) for i, h in enumerate(actors)]
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
-    try:
+    with RunEnvs(None, eval_env, *roll_envs):  # closed on exit
         if cfg.eval_teacher and state["teacher_eval"] is None:  # on its own env, closed afterwards
             state["teacher_eval"] = evals.run_snapshot(run, teacher, step=state["updates"], tag="teacher",
                                                        prefix="eval_teacher", parallel=cfg.parallel,
@@ -187,21 +145,22 @@ def main(argv=None) -> dict:
             state["initial_eval"] = evaluate("student before training")
         while state["rounds"] < cfg.rounds:
             rollout_metrics = {}
-            for i, (handle, n) in enumerate(zip(actors, _episode_shares(cfg, state["rounds"]))):
+            shares = ([cfg.episodes_per_round] if cfg.act != "mixed"  # --act mixed: DAgger's decaying mixture
+                      else mixture_shares(cfg.episodes_per_round, state["rounds"], cfg.rounds))
+            for i, (handle, n) in enumerate(zip(actors, shares)):
                 if n == 0:
                     continue
                 res = run_episodes(roll_envs[i], handle.make_policy(), n, max_steps=horizon, deterministic=True,
                                    keep_episodes=True, desc=f"rollout ({handle.kind})",
                                    seed=cfg.seed + 1000 * (state["rounds"] + 1) + 100 * i)
-                for ep in res.episodes:
-                    buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "state_estimate", "action", "return_to_go")))
+                buffer.add_episodes(res.episodes, keys=("state", "state_estimate", "action", "return_to_go"))
                 rollout_metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
             student.train()
-            history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device))
-                       for _ in progress(range(cfg.updates_per_round), desc=f"round {state['rounds'] + 1}")]
+            metrics = run_updates(updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), cfg.updates_per_round,
+                                  desc=f"round {state['rounds'] + 1}")
             state["rounds"] += 1
             state["updates"] += cfg.updates_per_round
-            run.log(state["updates"], {**mean_metrics(history), **rollout_metrics, "round": state["rounds"]})
+            run.log(state["updates"], {**metrics, **rollout_metrics, "round": state["rounds"]})
             key = "train/loss_distill" if cfg.distill else "train/loss_nll"
             run.print(f"round {state['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
                       + "".join(f", rollout ({k.split('/')[1].split('_')[0]}) {v:.3f}" for k, v in rollout_metrics.items()))
@@ -211,10 +170,6 @@ def main(argv=None) -> dict:
                 return dict(state)
         # --rounds 0 (the weight copy alone): the policy did not change, its evaluation stands
         final = evaluate("student after distillation") if cfg.rounds > 0 else state["initial_eval"]
-    finally:
-        close_env(eval_env)
-        for env in roll_envs:
-            close_env(env)
     state["final_eval"] = final
     student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,

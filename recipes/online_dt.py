@@ -12,102 +12,77 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
-import torch
 
-from trakdis.data import DataConfig, episode_to_trajectory, load_offline_data, make_buffer, valid_mask
+from trakdis.data import DataConfig, offline_state_buffer
 from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import EvalProtocol, RunEnvs, compare_scores, run_episodes
 from trakdis.modules import DTConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
-from trakdis.optim import OptimConfig, mean_metrics
+from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle
-from trakdis.training import train_updates
-from trakdis.transforms import OutOfViewFill, StateNoise, StateNormalizer
+from trakdis.training import run_updates, train_updates
+from trakdis.transforms import OutOfViewFill
 from trakdis.utils.phases import available_workers
-from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunConfig, RunState
-
 
 @dataclass
 class OnlineDTConfig(OptimConfig, RunConfig):
     """Teacher: offline Decision Transformer pretraining on expert data, then online fine-tuning."""
 
-    task: TaskName = "ClothFold"
-    """cloth task"""
-    horizon: int = 100
-    """episode length"""
-    data: DataConfig = field(default_factory=DataConfig)
-    """expert dataset"""
-    model: DTConfig = field(default_factory=DTConfig)
-    """Decision Transformer"""
+    task: TaskName = "ClothFold"  # cloth task
+    horizon: int = 100  # episode length
+    data: DataConfig = field(default_factory=DataConfig)  # expert dataset
+    model: DTConfig = field(default_factory=DTConfig)  # Decision Transformer
     min_lr_fraction: float = 0.1
     """cosine decay of the learning rate to this fraction of --lr by the end of pretraining (1: constant)"""
-    online_lr: Optional[float] = None
+    online_lr: float | None = None
     """constant learning rate of the online phase (default: the last offline one, --lr x --min-lr-fraction)"""
-    batch_size: int = 64
-    """windows per update"""
-    lambda_entropy: float = 0.1
-    """entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature"""
-    learn_temperature: bool = False
-    """learn the entropy temperature toward a target entropy of -action_dim (Online DT)"""
-    state_scale_floor: float = 1e-3
-    """lower bound (metres) of the state normaliser's per-dimension scale"""
+    batch_size: int = 64  # windows per update
+    lambda_entropy: float = 0.1  # entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature
+    learn_temperature: bool = False  # learn the entropy temperature toward a target entropy of -action_dim (Online DT)
+    state_scale_floor: float = 1e-3  # lower bound (metres) of the state normaliser's per-dimension scale
     state_noise: float = 0.0
     """std (metres) of Gaussian noise on the states of every training window (the acting state stays exact)"""
     mask_unseen_pickers: bool = False
     """train and act with each picker out of the 32x32 camera view replaced by a fixed sentinel xyz"""
-    rtg_scale: float = 1.0
-    """return-to-go scale (rewards and targets are multiplied by it)"""
-    buffer_capacity: Optional[int] = None
+    rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)
+    buffer_capacity: int | None = None
     """trajectories in the replay buffer (default: as many as the offline dataset has)"""
     buffer_replacement: Literal["oldest", "lowest_return"] = "lowest_return"
     """which trajectory a rollout replaces in a full buffer: the lowest-return one if it beats it, or the oldest"""
     early_windows: bool = True
     """also sample windows that begin before an episode's first step (the DT/ODT reference: --no-early-windows)"""
-    offline_updates: int = 1500
-    """offline pretraining updates"""
-    online_rounds: int = 8
-    """online rounds (roll out, add to the buffer, update)"""
-    episodes_per_round: int = 8
-    """episodes rolled out per online round (train split; their actions: --exploration)"""
-    updates_per_round: int = 150
-    """updates after each online rollout"""
-    exploration_rtg: Optional[float] = None
-    """initial return-to-go of the online rollouts (default: the evaluation target)"""
+    offline_updates: int = 1500  # offline pretraining updates
+    online_rounds: int = 8  # online rounds (roll out, add to the buffer, update)
+    episodes_per_round: int = 8  # episodes rolled out per online round (train split; their actions: --exploration)
+    updates_per_round: int = 150  # updates after each online rollout
+    exploration_rtg: float | None = None  # initial return-to-go of the online rollouts (default: the evaluation target)
     offline_control: bool = False
     """run the online schedule but never add the rollouts to the buffer (the offline-only control)"""
     exploration: Literal["mean", "sample"] = "mean"
     """actions of the online rollouts: the policy's mean, or samples as in Online DT"""
-    eval_rtg: Optional[float] = None
-    """initial return-to-go at evaluation (default: the best return of the offline data)"""
-    eval_episodes: int = 30
-    """evaluation episodes (eval split; the same configurations for every evaluation of a run)"""
-    eval_every: int = 0
-    """also evaluate every N online rounds (0: only after pretraining and at the end)"""
-    eval_expert: bool = True
-    """also evaluate the scripted expert on the evaluation episodes, for comparison"""
-    expert_episodes: int = 10
-    """the expert on only the first N of them (its scores vary little: std ~0.04)"""
+    eval_rtg: float | None = None  # initial return-to-go at evaluation (default: the best return of the offline data)
+    eval_episodes: int = 30  # evaluation episodes (eval split; the same configurations for every evaluation of a run)
+    eval_every: int = 0  # also evaluate every N online rounds (0: only after pretraining and at the end)
+    eval_expert: bool = True  # also evaluate the scripted expert on the evaluation episodes, for comparison
+    expert_episodes: int = 10  # the expert on only the first N of them (its scores vary little: std ~0.04)
     expert_cache: bool = True
     """reuse the expert's evaluation cached in <data.root>/expert_scores/ (--no-expert-cache: measure again)"""
     background_eval: bool = True
     """evaluate the expert and the offline teacher in a low-priority background process (same numbers)"""
-    collect_pixels: bool = False
-    """also store the 32x32 images in the dataset this run collects (for train_encoder.py)"""
+    collect_pixels: bool = False  # also store the 32x32 images in the dataset this run collects (for train_encoder.py)
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together (default: the available cores, at most 2); sets the eval configurations"""
     parallel: bool = True
     """step them in worker processes (ParallelEnv); --no-parallel: in turn in this process (same numbers)"""
     collector: Literal["sync", "multi_sync"] = "sync"
     """how batches of episodes are stepped: one Collector here, or a MultiSyncCollector of --num-envs processes"""
-    log_every: int = 50
-    """log training metrics every N updates"""
-    checkpoint_every: int = 500
-    """checkpoint every N offline updates (online: after every round)"""
+    log_every: int = 50  # log training metrics every N updates
+    checkpoint_every: int = 500  # checkpoint every N offline updates (online: after every round)
 
     def __post_init__(self):
         if self.horizon < 1:  # checked while parsing, before the run directory exists
@@ -142,25 +117,15 @@ def main(argv=None) -> dict:
                            "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None},
                    step_key="updates", phases_key="phases", updater=updater)
     phases = state.phases
-    if not state.resuming:  # 1. the expert data: its states' statistics, its best return
-        trajectories, lengths = load_offline_data(cfg.data, phases=phases, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
-                                                  collect_pixels=cfg.collect_pixels, log=run.print, progress=cfg.progress)
-        # statistics of the raw states; the fill (--mask-unseen-pickers) is carried, applied before standardising
-        fill = OutOfViewFill.for_task(cfg.task) if cfg.mask_unseen_pickers else None
-        state["normalizer"] = StateNormalizer.fit(trajectories["state"][valid_mask(lengths, trajectories.shape[1])],
-                                                  min_scale=cfg.state_scale_floor, fill=fill).state_dict()
-        state["best_return"] = float(trajectories["reward"].sum(dim=(-2, -1)).max())
-        if state["buffer_capacity"] is None:
-            state["buffer_capacity"] = int(trajectories.shape[0])
-    # The DT reads standardised states (buffer windows and acting; noisy ones with --state-noise; out-of-view
-    # pickers masked with --mask-unseen-pickers); data stays raw.
-    normalizer = StateNormalizer.from_state_dict(state["normalizer"])
-    noise = StateNoise(cfg.state_noise, in_keys=["state"], seed=cfg.seed + 7919) if cfg.state_noise > 0 else None
-    buffer = make_buffer(state["buffer_capacity"], cfg.model.context_len, cfg.horizon, cfg.rtg_scale, keys=("state",),
-                         seed=cfg.seed, transform=normalizer if noise is None else lambda td: normalizer(noise(td)),
-                         early_windows=cfg.early_windows, replacement=cfg.buffer_replacement)
-    state.objects["buffer"] = buffer
-    state.load() if state.resuming else buffer.load_offline(trajectories, lengths)
+    # 1. the expert data in the replay buffer. The DT reads standardised states (buffer windows and acting; noisy
+    # ones with --state-noise; out-of-view pickers masked with --mask-unseen-pickers); the data stay raw.
+    buffer, normalizer = offline_state_buffer(
+        state, cfg.data, phases=phases, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
+        context_len=cfg.model.context_len, rtg_scale=cfg.rtg_scale, min_scale=cfg.state_scale_floor,
+        state_noise=cfg.state_noise, fill=OutOfViewFill.for_task(cfg.task) if cfg.mask_unseen_pickers else None,
+        early_windows=cfg.early_windows, replacement=cfg.buffer_replacement, collect_pixels=cfg.collect_pixels,
+        log=run.print, progress=cfg.progress)
+    state.load()  # resumed: the updater and the buffer as checkpointed
     eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else state["best_return"]
     explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
     handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
@@ -206,14 +171,13 @@ def main(argv=None) -> dict:
                                        keep_episodes=True, desc="rollout", seed=cfg.seed + 1000 * (state["rounds"] + 1),
                                        collector=cfg.collector)
                 actor.train()
-                kept = sum(buffer.add_trajectory(episode_to_trajectory(ep, keys=("state", "action"))) >= 0
-                           for ep in (res.episodes if not cfg.offline_control else ()))
+                kept = buffer.add_episodes(res.episodes if not cfg.offline_control else (), keys=("state", "action"))
                 state["rounds"] += 1
                 with phases.phase("online updates"):
-                    history = [updater.step(buffer.sample(cfg.batch_size).to(cfg.device)) for _ in
-                               progress(range(cfg.updates_per_round), desc=f"round {state['rounds']}")]
+                    metrics = run_updates(updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device),
+                                          cfg.updates_per_round, desc=f"round {state['rounds']}")
                 state["updates"] += cfg.updates_per_round
-                run.log(state["updates"], {**mean_metrics(history), "phase": 1,
+                run.log(state["updates"], {**metrics, "phase": 1,
                                            "online/normalized_performance": float(res.final_performance.mean()),
                                            "online/return": float(res.returns.mean()), "online/round": state["rounds"],
                                            "online/kept": kept, "online/buffer_online_fraction": buffer.online_fraction})

@@ -8,20 +8,21 @@ Data, augmentation, student rounds, outputs (``runs/train_encoder/<name>/``): do
 from __future__ import annotations
 
 import copy
-import dataclasses
 import sys
 from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDict
 
-from trakdis.data import DataConfig, ensure_dataset, load_trajectories, real_steps, split_episodes_train_val
+from trakdis.data import DataConfig, load_train_val_steps
+from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
-from trakdis.modules import NormalizedEncoder
+from trakdis.modules import NormalizedEncoder, StateEncoder
+from trakdis.objectives import EncoderLoss
 from trakdis.optim import make_optimizer
 from trakdis.policies import check_unseen_picker_mask, load_teacher, save_encoder, student_rollout_steps
 from trakdis.transforms import OutOfViewFill
-from trakdis.training import eval_batches, shuffled_batches
+from trakdis.training import eval_batches, train_epoch
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -29,50 +30,30 @@ from trakdis.utils.run import Run, RunConfig, RunState
 class TrainEncoderConfig(RunConfig):
     """Train the CNN state encoder on the expert dataset's images and states."""
 
-    task: TaskName = "ClothFold"
-    """cloth task"""
-    horizon: int = 100
-    """episode length of the dataset"""
-    data: DataConfig = field(default_factory=DataConfig)
-    """expert dataset (with pixels)"""
-    image_size: int = 32
-    """image side"""
-    epochs: int = 20
-    """passes over the training images"""
-    batch_size: int = 128
-    """images per update"""
-    lr: float = 1e-3
-    """learning rate (AdamW)"""
-    weight_decay: float = 1e-4
-    """weight decay"""
-    aug: bool = True
-    """augment (random shift + label-consistent horizontal flip) while training"""
-    flip_prob: float = 0.5
-    """probability of the mirrored image"""
-    pad: int = 2
-    """random-shift padding in pixels"""
-    channels: tuple[int, ...] = (32, 32, 32, 32)
-    """channels of the 4 conv layers"""
-    hidden_dim: int = 256
-    """width of the MLP head"""
-    head: str = "flatten"
-    """encoder head: 'flatten' (conv features -> MLP) or 'keypoints' (spatial soft-argmax)"""
-    stem_stride: int = 2
-    """stride of the first conv layer (1 keeps the full resolution)"""
-    coord_channels: bool = False
-    """append pixel-coordinate channels to the image (CoordConv)"""
+    task: TaskName = "ClothFold"  # cloth task
+    horizon: int = 100  # episode length of the dataset
+    data: DataConfig = field(default_factory=DataConfig)  # expert dataset (with pixels)
+    image_size: int = 32  # image side
+    epochs: int = 20  # passes over the training images
+    batch_size: int = 128  # images per update
+    lr: float = 1e-3  # learning rate (AdamW)
+    weight_decay: float = 1e-4  # weight decay
+    aug: bool = True  # augment (random shift + label-consistent horizontal flip) while training
+    flip_prob: float = 0.5  # probability of the mirrored image
+    pad: int = 2  # random-shift padding in pixels
+    channels: tuple[int, ...] = (32, 32, 32, 32)  # channels of the 4 conv layers
+    hidden_dim: int = 256  # width of the MLP head
+    head: str = "flatten"  # encoder head: 'flatten' (conv features -> MLP) or 'keypoints' (spatial soft-argmax)
+    stem_stride: int = 2  # stride of the first conv layer (1 keeps the full resolution)
+    coord_channels: bool = False  # append pixel-coordinate channels to the image (CoordConv)
     extra_noise: tuple[float, ...] = ()
     """also train on datasets of the same size collected with these expert movement noises"""
-    val_fraction: float = 0.1
-    """fraction of the episodes held out for validation"""
+    val_fraction: float = 0.1  # fraction of the episodes held out for validation
     teacher: str = ""
     """teacher policy file or online_dt run directory: also train on the weight-copied student's images"""
-    student_rounds: int = 2
-    """rounds of (student rollouts, training) with --teacher"""
-    student_episodes: int = 20
-    """student rollouts per round"""
-    student_epochs: int = 5
-    """passes over all training images after each round's rollouts"""
+    student_rounds: int = 2  # rounds of (student rollouts, training) with --teacher
+    student_episodes: int = 20  # student rollouts per round
+    student_epochs: int = 5  # passes over all training images after each round's rollouts
     mask_unseen_pickers: bool = False
     """label each picker out of the camera view with a fixed sentinel xyz (for a teacher trained so)"""
 
@@ -80,31 +61,16 @@ class TrainEncoderConfig(RunConfig):
 def main(argv=None) -> dict:
     run = Run.start("train_encoder", TrainEncoderConfig, argv, description=__doc__)
     cfg = run.cfg
-    from trakdis.envs import task_spec
-    from trakdis.modules import StateEncoder
-    from trakdis.objectives import EncoderLoss
-
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     if cfg.teacher and min(cfg.student_rounds, cfg.student_episodes, cfg.student_epochs) < 0 or \
             cfg.teacher and cfg.student_rounds > 0 and min(cfg.student_episodes, cfg.student_epochs) < 1:
         raise ValueError(f"--student-rounds {cfg.student_rounds} >= 0 needs --student-episodes "
                          f"({cfg.student_episodes}) and --student-epochs ({cfg.student_epochs}) >= 1")
-    path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
-                          image_size=cfg.image_size, log=run.print, progress=cfg.progress)
-    data, lengths = load_trajectories(path, keys=("pixels", "state"))
-    extra = []
-    for noise in cfg.extra_noise:
-        extra_cfg = dataclasses.replace(cfg.data, path=None, expert_noise=float(noise))
-        extra_path = ensure_dataset(extra_cfg, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed + 1, pixels=True,
-                                    image_size=cfg.image_size, log=run.print, progress=cfg.progress)
-        extra.append((extra_path, *load_trajectories(extra_path, keys=("pixels", "state"))))
-    train_episodes, val_episodes = split_episodes_train_val(data.shape[0], cfg.val_fraction, seed=cfg.seed)
-    train = real_steps(data, lengths, train_episodes)
-    val = real_steps(data, lengths, val_episodes) if len(val_episodes) else None
-    for extra_path, extra_data, extra_lengths in extra:  # training only: validation stays on the main dataset
-        extra_steps = real_steps(extra_data, extra_lengths)
-        train = torch.cat([train, extra_steps])
-        run.print(f"training images +{extra_steps.shape[0]} from {extra_path}")
+    # the expert images and states, split by episode; --extra-noise datasets join the training steps
+    path, train, val, train_episodes, val_episodes = load_train_val_steps(
+        cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, keys=("pixels", "state"),
+        val_fraction=cfg.val_fraction, image_size=cfg.image_size, extra_noise=cfg.extra_noise, log=run.print,
+        progress=cfg.progress)
     # --mask-unseen-pickers: the labels (training and validation) are what the teacher reads, a picker
     # out of the image replaced by the sentinel the encoder then learns to output for it
     fill = OutOfViewFill.for_task(cfg.task, image_size=cfg.image_size) if cfg.mask_unseen_pickers else None
@@ -114,8 +80,7 @@ def main(argv=None) -> dict:
         train.set("state", fill.mask(train["state"]))
         if val is not None:
             val.set("state", fill.mask(val["state"]))
-    train_states = train["state"]
-    mean, std = train_states.mean(0), train_states.std(0).clamp_min(1e-3)
+    mean, std = train["state"].mean(0), train["state"].std(0).clamp_min(1e-3)
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "
               f"({len(train_episodes)} / {len(val_episodes)} episodes)")
 
@@ -150,10 +115,8 @@ def main(argv=None) -> dict:
             # The images the weight-copied student sees: its error there is what the teacher's
             # weights must act on (docs/recipes/distill.md), and expert images never show them.
             new, metrics = student_rollout_steps(teacher, encoder, episodes=cfg.student_episodes, image_size=cfg.image_size,
-                                                 seed=cfg.seed + 5000 + state["rounds_done"])
+                                                 seed=cfg.seed + 5000 + state["rounds_done"], label_fill=fill)
             new = new.to_dict()  # plain tensors: the checkpoint loader refuses TensorDicts
-            if fill is not None:
-                new["state"] = fill.mask(new["state"])
             old = state["student_steps"]
             state["student_steps"] = new if old is None else {k: torch.cat([old[k], v]) for k, v in new.items()}
             state["rounds_done"] += 1
@@ -164,16 +127,8 @@ def main(argv=None) -> dict:
         student = state["student_steps"]
         epoch_train = train if student is None else torch.cat(
             [train, TensorDict(student, batch_size=[len(student["state"])])])
-        totals, n = {"loss_encoder": 0.0, "mae": 0.0}, 0
-        epoch = f"epoch {state['epoch'] + 1}"
-        for batch in shuffled_batches(epoch_train, cfg.batch_size, device=cfg.device, desc=epoch):
-            out = loss(batch)
-            optim.zero_grad(set_to_none=True)
-            out["loss_encoder"].backward()
-            optim.step()
-            for k in totals:
-                totals[k] += float(out[k].detach()) * batch.shape[0]
-            n += batch.shape[0]
+        totals = train_epoch(loss, optim, epoch_train, cfg.batch_size, loss_key="loss_encoder",
+                             metrics=("loss_encoder", "mae"), device=cfg.device, desc=f"epoch {state['epoch'] + 1}")
         state["epoch"] += 1
         val_err = validate()
         val_mae = val_err["mae"]
@@ -182,11 +137,11 @@ def main(argv=None) -> dict:
         if val is None or val_mae < state["best"]["val_mae"] or state["epoch"] > cfg.epochs:
             state["best"] = {"val_mae": val_mae, "state_dict": copy.deepcopy(encoder.state_dict()),
                              "epoch": state["epoch"], "val_error_cm": {k: v for k, v in val_err.items() if k != "mae"}}
-        run.log(state["epoch"], {"train/loss_encoder": totals["loss_encoder"] / n, "train/mae": totals["mae"] / n,
+        run.log(state["epoch"], {"train/loss_encoder": totals["loss_encoder"], "train/mae": totals["mae"],
                                  **{f"val/{k}": v for k, v in val_err.items()}})
         groups = ", ".join(f"{k.removesuffix('_cm')} {v:.2f} cm" for k, v in val_err.items() if k != "mae")
-        run.print(f"epoch {state['epoch']}/{total_epochs}: train MSE {totals['loss_encoder'] / n:.5f}, "
-                  f"train MAE {totals['mae'] / n:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f} ({groups})")
+        run.print(f"epoch {state['epoch']}/{total_epochs}: train MSE {totals['loss_encoder']:.5f}, "
+                  f"train MAE {totals['mae']:.4f} (augmented: {cfg.aug}), validation MAE {val_mae:.4f} ({groups})")
         if state.save_and_should_stop(total_epochs, unit="epoch"):
             return state["best"]
     best = state["best"]

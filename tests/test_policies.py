@@ -124,6 +124,42 @@ def test_student_rollout_steps(tmp_path):
     assert steps["pixels"].shape[1:] == (32, 32, 3) and steps["state"].shape[1:] == (spec.state_dim,)
     assert set(metrics) == {"normalized_performance", "corners_cm", "pickers_cm", "mae"}
     assert encoder.training  # the rollouts used a copy: the caller's encoder keeps its mode
+    from trakdis.transforms import OutOfViewFill
+
+    fill = OutOfViewFill.for_task("ClothFold")  # the labels of train_encoder.py --mask-unseen-pickers
+    masked, _ = student_rollout_steps(load_teacher(tmp_path), encoder, episodes=2, seed=0, label_fill=fill)
+    assert torch.equal(masked["pixels"], steps["pixels"]) and torch.equal(masked["state"], fill.mask(steps["state"]))
+
+
+def test_load_teacher_and_encoder_finds_the_latest_runs_and_checks_the_mask(tmp_path):
+    from trakdis.policies import load_teacher_and_encoder
+    from trakdis.transforms import OutOfViewFill, StateNormalizer
+
+    cfg, actor = tiny_actor()
+    enc = NormalizedEncoder(StateEncoder(15, channels=(4, 4, 4, 4), hidden_dim=8), torch.zeros(15), torch.ones(15))
+    with pytest.raises(FileNotFoundError, match="--teacher"):
+        load_teacher_and_encoder("latest", "latest", root=tmp_path)
+    for recipe, name in (("online_dt", "t"), ("train_encoder", "e")):
+        (tmp_path / recipe / name).mkdir(parents=True)
+        (tmp_path / recipe / name / "config.json").write_text("{}")
+    save_policy(tmp_path / "online_dt" / "t" / "policy.pt", kind="teacher", task="ClothFoldDiagonalPinned", horizon=10,
+                dt_config=cfg, actor=actor, observation_key="state", target_return=-1.0, rtg_scale=1.0,
+                normalizer=StateNormalizer(torch.zeros(15), torch.ones(15)))
+    with pytest.raises(FileNotFoundError, match="--encoder"):
+        load_teacher_and_encoder("latest", "latest", root=tmp_path)
+    save_encoder(tmp_path / "train_encoder" / "e" / "encoder.pt", enc, task="ClothFoldDiagonalPinned")
+    teacher, encoder, encoder_file, encoder_path = load_teacher_and_encoder("latest", "latest", root=tmp_path)
+    assert teacher.kind == "teacher" and teacher.source == str(tmp_path / "online_dt" / "t" / "policy.pt")
+    assert encoder_path == tmp_path / "train_encoder" / "e" / "encoder.pt" and encoder_file["task"] == teacher.task
+    assert isinstance(encoder, NormalizedEncoder)
+    save_encoder(tmp_path / "masked.pt", enc, task="ClothFoldDiagonalPinned",
+                 extra={"mask_unseen_pickers": True,
+                        "out_of_view_fill": OutOfViewFill.for_task("ClothFoldDiagonalPinned").state_dict()})
+    with pytest.raises(ValueError, match="--mask-unseen-pickers"):  # a plain teacher, a masked encoder
+        load_teacher_and_encoder(tmp_path / "online_dt" / "t", tmp_path / "masked.pt", root=tmp_path)
+    save_encoder(tmp_path / "other.pt", enc, task="ClothFoldDiagonalUnpinned")
+    with pytest.raises(ValueError, match="not ClothFoldDiagonalPinned"):  # an encoder of another task
+        load_teacher_and_encoder("latest", tmp_path / "other.pt", root=tmp_path)
 
 
 def test_masked_teacher_passes_its_fill_to_the_student_and_a_mismatched_encoder_is_refused(tmp_path):

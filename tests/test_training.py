@@ -1,12 +1,15 @@
-"""The recipes' update loop: log, checkpoint and --stop-after cadence."""
+"""The recipes' update loops: log, checkpoint and --stop-after cadence, a round's updates, DAgger's
+mixture, epochs of minibatches and validation passes."""
 from dataclasses import dataclass
 
+import pytest
 import torch
 from tensordict import TensorDict
 
 from quadratic_loss import Quadratic
 from trakdis.optim import Updater
-from trakdis.training import eval_batches, shuffled_batches, train_updates
+from trakdis.training import (eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch,
+                              train_updates)
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -64,3 +67,35 @@ def test_eval_batches_in_eval_mode_without_gradients():
     module.eval()
     assert torch.equal(torch.cat(eval_batches(module, TensorDict({"x": torch.ones(3)}, [3]), 2, lambda b: module(b["x"]))),
                        torch.ones(3)) and not module.training
+
+
+def test_run_updates_steps_n_times_and_returns_the_mean_metrics():
+    updater = Updater(Quadratic(), optimizer="adam", lr=1e-2)
+    sampled = []
+    metrics = run_updates(updater, lambda: sampled.append(1) or TensorDict(), 3, desc="round 1")
+    assert len(sampled) == 3 and updater.updates == 3
+    assert set(metrics) >= {"train/loss_q"} and 0 < metrics["train/loss_q"] < 2.0  # the mean over 3 steps, from 2
+
+
+def test_mixture_shares_decay_from_all_teacher_to_all_student():
+    assert [mixture_shares(4, r, 5) for r in range(5)] == [[4, 0], [3, 1], [2, 2], [1, 3], [0, 4]]
+    assert mixture_shares(3, 0, 1) == [3, 0]  # a single round: the teacher's
+    assert sum(mixture_shares(7, 2, 6)) == 7
+
+
+def test_train_epoch_weights_each_batch_by_its_size():
+    class Mean(torch.nn.Module):  # loss: (w - x)^2 averaged over the batch; metric: the batch's mean x
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(()))
+
+        def forward(self, batch):
+            return TensorDict(loss=((self.w - batch["x"]) ** 2).mean(), x=batch["x"].mean())
+
+    module = Mean()
+    optim = torch.optim.SGD(module.parameters(), lr=0.1)
+    data = TensorDict({"x": torch.arange(5.0)}, [5])
+    torch.manual_seed(0)
+    out = train_epoch(module, optim, data, 2, loss_key="loss", metrics=("x",), desc="epoch 1")
+    assert set(out) == {"x"} and out["x"] == pytest.approx(2.0)  # batches of 2, 2, 1: the mean over the 5 steps
+    assert float(module.w) != 0.0  # stepped

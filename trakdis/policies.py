@@ -24,11 +24,13 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import torch
+from tensordict import TensorDict
 from torch import nn
 
 from trakdis.envs.batched import make_batched_env
 from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
 from trakdis.transforms.normalization import ProprioceptionOverride, StateNormalizer
+from trakdis.transforms.visibility import OutOfViewFill
 from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 __all__ = [
@@ -45,6 +47,7 @@ __all__ = [
     "weight_copied_student",
     "student_rollout_steps",
     "check_unseen_picker_mask",
+    "load_teacher_and_encoder",
 ]
 
 
@@ -253,8 +256,6 @@ def check_unseen_picker_mask(teacher: PolicyHandle, encoder_file: Mapping[str, A
     both files and the flag unless the encoder (``encoder_file``: an encoder file's dict, read from
     ``encoder_source``; ``train_encoder.py --mask-unseen-pickers`` records ``mask_unseen_pickers``
     and ``out_of_view_fill``) was trained on labels masked the same way."""
-    from trakdis.transforms import OutOfViewFill
-
     fill = None if teacher.normalizer is None else teacher.normalizer.fill
     encoder_masked = bool(encoder_file.get("mask_unseen_pickers", False))
     if (fill is not None) != encoder_masked:
@@ -274,14 +275,35 @@ def check_unseen_picker_mask(teacher: PolicyHandle, encoder_file: Mapping[str, A
     return fill is not None
 
 
+def load_teacher_and_encoder(teacher: str | Path, encoder: str | Path, *, root: str | Path,
+                             device: str = "cpu") -> tuple[PolicyHandle, NormalizedEncoder, dict[str, Any], Path]:
+    """``(teacher, encoder, encoder_file, encoder_path)``: the teacher and the encoder a student is
+    made of (``distill.py``). ``teacher``: a teacher's policy file or ``online_dt`` run directory;
+    ``encoder``: an ``encoder.pt`` or ``train_encoder`` run directory; either ``"latest"``: the newest
+    run of that recipe under ``root`` (:func:`~trakdis.utils.logger.latest_run_file`, whose error
+    names ``--teacher`` / ``--encoder``). The encoder is loaded for the teacher's task, and both must
+    have been trained with ``--mask-unseen-pickers`` or neither (:func:`check_unseen_picker_mask`:
+    the teacher's normaliser carries the fill to the student)."""
+    from trakdis.utils.logger import latest_run_file
+
+    handle = load_teacher(latest_run_file(str(teacher), root, "online_dt", "policy.pt", flag="--teacher"),
+                          device=device)
+    encoder_path = latest_run_file(str(encoder), root, "train_encoder", "encoder.pt", flag="--encoder")
+    module, encoder_file = load_encoder(encoder_path, task=handle.task)
+    check_unseen_picker_mask(handle, encoder_file, encoder_source=str(encoder_path))
+    return handle, module, encoder_file, encoder_path
+
+
 def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int,
-                          image_size: int = 32, num_envs: int = 2):
+                          image_size: int = 32, num_envs: int = 2,
+                          label_fill: OutOfViewFill | None = None) -> tuple[TensorDict, dict[str, float]]:
     """``(steps, metrics)``: the ``"pixels"`` and true ``"state"`` of every step of ``episodes``
     train-split episodes of the weight-copied student of ``teacher`` acting on a frozen copy of
     ``encoder``'s estimates (the states the student visits; ``train_encoder.py --teacher``), and how
     they went: ``normalized_performance`` (mean at the episodes' end) and the estimate's error per
     state group (``task_spec(task).state_error_cm``; against the state the teacher reads, its
-    out-of-view pickers masked when its normaliser carries a fill). The returned ``"state"`` is raw."""
+    out-of-view pickers masked when its normaliser carries a fill). The returned ``"state"`` is raw,
+    or masked by ``label_fill`` (the labels of an encoder trained with ``--mask-unseen-pickers``)."""
     import copy
 
     from trakdis.envs import close_env, task_spec
@@ -298,7 +320,10 @@ def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes
     fill = None if teacher.normalizer is None else teacher.normalizer.fill
     target = steps["state"] if fill is None else fill.mask(steps["state"])  # what the encoder is trained to output
     err = task_spec(teacher.task, horizon=teacher.horizon).state_error_cm((steps["state_estimate"] - target).abs())
-    return steps.exclude("state_estimate"), {"normalized_performance": float(res.final_performance.mean()), **err}
+    steps = steps.exclude("state_estimate")
+    if label_fill is not None:
+        steps.set("state", label_fill.mask(steps["state"]))
+    return steps, {"normalized_performance": float(res.final_performance.mean()), **err}
 
 
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,

@@ -1,7 +1,9 @@
 """The update loops of the recipes: ``updater`` steps on sampled batches until a counter reaches
 its total, with the log, checkpoint and ``--stop-after`` cadence written once
-(:func:`train_updates`), one epoch's shuffled minibatches of a dataset (:func:`shuffled_batches`) and
-a validation pass over a dataset in batches (:func:`eval_batches`).
+(:func:`train_updates`), a round's updates (:func:`run_updates`), the episodes each acting policy
+plays in a round of DAgger's mixture (:func:`mixture_shares`), one epoch's shuffled minibatches of a
+dataset (:func:`shuffled_batches`), one epoch of plain optimiser steps on them (:func:`train_epoch`)
+and a validation pass over a dataset in batches (:func:`eval_batches`).
 
     done = train_updates(run, updater, lambda: buffer.sample(64), state=state, total=1500,
                          log_every=50, checkpoint_every=500)
@@ -10,7 +12,7 @@ a validation pass over a dataset in batches (:func:`eval_batches`).
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Iterator, Mapping, TypeVar
+from typing import Any, Callable, Iterator, Mapping, Sequence, TypeVar
 
 import torch
 from tensordict import TensorDictBase
@@ -20,7 +22,7 @@ from trakdis.optim import Updater, mean_metrics
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["eval_batches", "shuffled_batches", "train_updates"]
+__all__ = ["eval_batches", "mixture_shares", "run_updates", "shuffled_batches", "train_epoch", "train_updates"]
 
 T = TypeVar("T")
 
@@ -60,6 +62,22 @@ def train_updates(run: Run, updater: Updater, sample: Callable[[], TensorDictBas
     return True
 
 
+def run_updates(updater: Updater, sample: Callable[[], TensorDictBase], updates: int, *,
+                desc: str = "updates") -> dict[str, float]:
+    """``updates`` steps of ``updater`` on ``sample()`` (a progress bar named ``desc``): a round's updates.
+    Returns their mean metrics (:func:`~trakdis.optim.mean_metrics`: ``train/*``)."""
+    return mean_metrics([updater.step(sample()) for _ in progress(range(updates), desc=desc)])
+
+
+def mixture_shares(episodes: int, round_index: int, rounds: int) -> list[int]:
+    """DAgger's decaying mixture: ``[teacher, student]`` episodes of round ``round_index`` (from 0) of
+    ``rounds``, the teacher's share ``1 - round_index / (rounds - 1)`` of ``episodes`` (rounded): all
+    in the first round, none in the last."""
+    beta = 1.0 - round_index / max(rounds - 1, 1)
+    n_teacher = round(beta * episodes)
+    return [n_teacher, episodes - n_teacher]
+
+
 def shuffled_batches(data: TensorDictBase, batch_size: int, *, device: str | torch.device = "cpu",
                      desc: str = "epoch") -> Iterator[TensorDictBase]:
     """One epoch over ``data`` ``[N]``: minibatches of ``batch_size`` steps (the last one smaller) in
@@ -68,6 +86,24 @@ def shuffled_batches(data: TensorDictBase, batch_size: int, *, device: str | tor
     order = torch.randperm(data.shape[0])
     for i in progress(range(0, data.shape[0], batch_size), desc=desc):
         yield data[order[i : i + batch_size]].to(device)
+
+
+def train_epoch(loss_module: nn.Module, optimizer: torch.optim.Optimizer, data: TensorDictBase, batch_size: int, *,
+                loss_key: str, metrics: Sequence[str], device: str | torch.device = "cpu",
+                desc: str = "epoch") -> dict[str, float]:
+    """One epoch over ``data`` ``[N]`` (:func:`shuffled_batches`): for each minibatch, ``loss_module(batch)``
+    and a step of ``optimizer`` on its entry ``loss_key``. Returns the mean over the epoch's steps (each
+    batch weighted by its size) of the loss output's entries ``metrics``."""
+    totals, n = dict.fromkeys(metrics, 0.0), 0
+    for batch in shuffled_batches(data, batch_size, device=device, desc=desc):
+        out = loss_module(batch)
+        optimizer.zero_grad(set_to_none=True)
+        out[loss_key].backward()
+        optimizer.step()
+        for k in totals:
+            totals[k] += float(out[k].detach()) * batch.shape[0]
+        n += batch.shape[0]
+    return {k: total / n for k, total in totals.items()}
 
 
 def eval_batches(module: nn.Module, data: TensorDictBase, batch_size: int,

@@ -122,3 +122,105 @@ def test_load_offline_data_prefers_an_existing_pixel_dataset_and_prints_its_retu
     assert set(trajectories.keys()) == {"state", "action", "reward", "normalized_performance"}
     assert lines == [f"offline data: 2 episodes from {tmp_path / 'd'}; return -1.250 (best -0.500); "
                      "final normalized performance 0.500"]
+
+
+def _episodes(n, horizon, state_dim=2):
+    """``n`` fake padded episodes with pixels: state (episode, step), reward -1 per step."""
+    import torch
+    from tensordict import TensorDict
+
+    state = torch.stack(torch.meshgrid(torch.arange(n).float(), torch.arange(horizon).float(), indexing="ij"), -1)
+    return TensorDict({"pixels": torch.zeros(n, horizon, 2, 2, 3, dtype=torch.uint8), "state": state[..., :state_dim],
+                       "action": torch.zeros(n, horizon, 1), "reward": -torch.ones(n, horizon, 1),
+                       "normalized_performance": torch.zeros(n, horizon, 1)}, [n, horizon])
+
+
+def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_noise_datasets(tmp_path, monkeypatch):
+    import torch
+
+    from trakdis.data import load_train_val_steps, loading, split_episodes_train_val
+
+    cfg = DataConfig(root=str(tmp_path), episodes=5)
+    main = default_dataset_path(cfg, task="ClothFold", horizon=3, pixels=True)
+    extra = default_dataset_path(DataConfig(root=str(tmp_path), episodes=5, expert_noise=0.3), task="ClothFold",
+                                 horizon=3, pixels=True)
+    datasets = {main: (_episodes(5, 3), torch.tensor([3, 2, 3, 1, 3])), extra: (_episodes(2, 3), torch.tensor([3, 2]))}
+    seeds = {}
+
+    def ensure_dataset(cfg, *, task, horizon, seed, pixels, **kw):
+        path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels)
+        seeds[path] = seed
+        return path
+
+    monkeypatch.setattr(loading, "ensure_dataset", ensure_dataset)
+    monkeypatch.setattr(loading, "load_expert_dataset",
+                        lambda path: (datasets[path][0], {"lengths": datasets[path][1]}))
+    lines = []
+    path, train, val, train_eps, val_eps = load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7,
+                                                                keys=("pixels", "state"), val_fraction=0.4,
+                                                                extra_noise=(0.3,), log=lines.append)
+    assert path == main and seeds == {main: 7, extra: 8}
+    expected_train, expected_val = split_episodes_train_val(5, 0.4, seed=7)
+    assert train_eps.tolist() == expected_train.tolist() and val_eps.tolist() == expected_val.tolist()
+    lengths = [3, 2, 3, 1, 3]
+    assert val.shape[0] == sum(lengths[i] for i in val_eps) and set(train.keys()) == {"pixels", "state"}
+    assert train.shape[0] == sum(lengths[i] for i in train_eps) + 5  # + all the extra dataset's 3 + 2 steps
+    assert lines == [f"training images +5 from {extra}"]
+    assert load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.0).val is None
+
+
+def test_load_encoded_dataset_puts_the_encoders_output_beside_the_kept_entries(tmp_path, monkeypatch):
+    import torch
+
+    from trakdis.data import load_encoded_dataset, loading
+
+    monkeypatch.setattr(loading, "ensure_dataset", lambda cfg, **kw: tmp_path / "d")
+    monkeypatch.setattr(loading, "load_expert_dataset",
+                        lambda path: (_episodes(3, 4), {"lengths": torch.tensor([4, 2, 3])}))
+    data, lengths, path = load_encoded_dataset(DataConfig(), lambda px: px.float().sum((-3, -2, -1)).unsqueeze(-1) + 1,
+                                               task="ClothFold", horizon=4, seed=0, keys=("action", "reward"))
+    assert path == tmp_path / "d" and lengths.tolist() == [4, 2, 3] and data.batch_size == (3, 4)
+    assert set(data.keys()) == {"action", "reward", "state_estimate"} and (data["state_estimate"] == 1).all()
+
+
+def test_offline_state_buffer_fits_on_a_fresh_run_and_reloads_from_the_checkpoint(tmp_path, monkeypatch):
+    from dataclasses import dataclass
+
+    import torch
+
+    from trakdis.data import loading, offline_state_buffer
+    from trakdis.utils.phases import PhaseTimer
+    from trakdis.utils.run import Run, RunConfig, RunState
+
+    @dataclass
+    class Cfg(RunConfig):
+        pass
+
+    data, lengths = _episodes(3, 4), torch.tensor([4, 2, 3])
+    data["reward"][1] = -0.5  # episode 1: the best return (-1: 2 real steps, no reward in the padding)
+    data["reward"] *= (torch.arange(4)[None] < lengths[:, None]).unsqueeze(-1)
+    loaded = []
+    monkeypatch.setattr(loading, "load_offline_data", lambda cfg, **kw: loaded.append(kw) or (data, lengths))
+
+    def start(*argv):
+        run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "a", "--no-progress", *argv])
+        state = RunState(run, {"normalizer": None, "best_return": None, "buffer_capacity": None}, step_key="x",
+                         counters_key="counters")
+        state["x"] = 0
+        buffer, normalizer = offline_state_buffer(state, DataConfig(), phases=PhaseTimer(), task="ClothFold", horizon=4,
+                                                  seed=0, context_len=2, min_scale=0.5, state_noise=0.1)
+        state.load()
+        return state, buffer, normalizer
+
+    state, buffer, normalizer = start()
+    real = data["state"][torch.arange(4)[None] < lengths[:, None]]
+    assert torch.allclose(normalizer.loc, real.mean(0)) and torch.allclose(normalizer.scale, real.std(0).clamp_min(0.5))
+    assert state["best_return"] == pytest.approx(-1.0) and state["buffer_capacity"] == 3 and len(buffer) == 3
+    assert len(loaded) == 1 and state.objects["buffer"] is buffer
+    batch = buffer.sample(4)  # standardised (and noisy) states
+    assert batch["state"].abs().max() < 10 and batch.batch_size == (4, 2)
+    state.save()
+    resumed, buffer2, normalizer2 = start("--resume")
+    assert len(loaded) == 1  # the dataset is not read again
+    assert resumed["best_return"] == state["best_return"] and torch.equal(normalizer2.loc, normalizer.loc)
+    assert len(buffer2) == 3 and torch.equal(buffer2.returns, buffer.returns)

@@ -237,3 +237,18 @@ def test_stored_return_to_go_is_returned_unchanged():
     hindsight = TrajectoryReplayBuffer(capacity=2, context_len=2, max_len=4, rtg_scale=0.5, seed=0)
     hindsight.load_offline(data.exclude("return_to_go"), lengths)
     assert not torch.equal(hindsight.sample(64)["return_to_go"], batch["return_to_go"])
+
+
+def test_add_episodes_adds_rollout_episodes_and_counts_the_kept():
+    rb = TrajectoryReplayBuffer(capacity=2, context_len=2, max_len=3, replacement="lowest_return")
+    rb.load_offline(*_trajs([-2.0, -1.0], T=3))
+
+    def episode(ret):  # a rollout episode [T] as run_episodes keeps it (reward under "next")
+        state = torch.full((3, 2), ret)
+        return TensorDict({"state": state, "action": state[:, :1], "pixels": torch.zeros(3, 1),
+                           "next": {"reward": torch.full((3, 1), ret / 3)}}, [3])
+
+    assert rb.add_episodes([episode(-3.0), episode(-0.5)], keys=("state", "action")) == 1  # -3 is below both
+    assert rb.num_online == 1 and sorted(rb.returns.tolist()) == pytest.approx([-1.0, -0.5])
+    assert "pixels" not in rb.storage._storage.keys()  # only the given keys
+    assert rb.add_episodes([], keys=("state", "action")) == 0

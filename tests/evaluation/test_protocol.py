@@ -190,3 +190,15 @@ def test_expert_scores_known_now_and_run_envs_closing_and_cancelling(monkeypatch
             raise RuntimeError("boom")
     assert closed == [b, a] and job.cancelled and evals._pending == []
     assert {"env worker start (after training)", "env worker shutdown"} <= set(phases.records)
+
+
+def test_run_envs_without_a_phase_timer_closes_its_envs_in_order(monkeypatch):
+    import trakdis.envs
+
+    closed = []
+    monkeypatch.setattr(trakdis.envs, "close_env", lambda env: closed.append(env))
+    a, b, c = object(), object(), object()
+    with RunEnvs(None, a, None, b, c) as envs:  # a run that times no phases (distill.py)
+        envs.start_workers()
+        envs.join_workers()
+    assert closed == [a, b, c]

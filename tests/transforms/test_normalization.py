@@ -47,6 +47,8 @@ def test_chain_applies_the_steps_in_order():
     assert out["state_estimate"].tolist() == [[-0.5, -0.5, -0.5, 1.5]]  # overridden first, then standardised
     assert torch.equal(chain(norm)(td.clone())["state"], norm(td.clone())["state"])
     assert chain()(td) is td  # no steps: the identity
+    assert chain(None, None)(td) is td  # an optional step that is off: skipped
+    assert torch.equal(chain(None, norm, None)(td.clone())["state"], norm(td.clone())["state"])
 
 
 def test_state_normalizer_with_out_of_view_fill(tmp_path):

@@ -38,6 +38,7 @@ class Cfg(Base):
     lr: float = 1e-4
     """learning rate (100% of it)"""
     steps: int = 10
+    batch: int = 8  # windows per update (an inline comment is help too)
     aug: bool = True
     """use image augmentation"""
     name: Optional[str] = None
@@ -88,7 +89,8 @@ def test_booleans_listed_once_in_help(capsys):
     assert exc.value.code == 0
     text = capsys.readouterr().out
     for needle in ("Train a thing.", "--preset {fast,paper}", "learning rate (100% of it)",
-                   "use image augmentation", "width of the token embeddings", "--model.embed-dim", "continue a run"):
+                   "use image augmentation", "width of the token embeddings", "--model.embed-dim", "continue a run",
+                   "windows per update (an inline comment is help too)"):
         assert needle in text, needle
     assert text.count("--no-aug") == 1 and text.count("--aug,") == 1
     assert "(default: 256)" in text  # the help shows the preset's values

@@ -21,8 +21,9 @@ from .dataset import (
 )
 from .layout import (ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, encode_trajectories, episode_to_trajectory, real_steps,
                      split_episodes_train_val, valid_mask)
-from .loading import (DataConfig, default_dataset_path, ensure_dataset, ensure_dataset_timed, load_offline_data,
-                      load_trajectories, make_buffer)
+from .loading import (DataConfig, TrainValSteps, default_dataset_path, ensure_dataset, ensure_dataset_timed,
+                      load_encoded_dataset, load_offline_data, load_train_val_steps, load_trajectories, make_buffer,
+                      offline_state_buffer)
 
 __all__ = [
     "DATASET_FORMAT",
@@ -43,10 +44,14 @@ __all__ = [
     "split_episodes_train_val",
     "valid_mask",
     "DataConfig",
+    "TrainValSteps",
     "default_dataset_path",
     "ensure_dataset",
     "ensure_dataset_timed",
+    "load_encoded_dataset",
     "load_offline_data",
+    "load_train_val_steps",
     "load_trajectories",
     "make_buffer",
+    "offline_state_buffer",
 ]

@@ -44,7 +44,7 @@ TorchRL parts and why:
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -54,7 +54,7 @@ from torchrl.data.replay_buffers.samplers import Sampler
 
 from trakdis.transforms.return_to_go import hindsight_return_to_go
 
-from .layout import valid_mask
+from .layout import episode_to_trajectory, valid_mask
 
 __all__ = ["TopReturnWriter", "TrajectoryReplayBuffer", "WindowSampler"]
 
@@ -255,6 +255,7 @@ class TrajectoryReplayBuffer:
         >>> rb = TrajectoryReplayBuffer(capacity=1000, context_len=20, max_len=100, keys=("state", "action"))
         >>> rb.load_offline(data, lengths)            # data [N, 100], N may exceed the capacity
         >>> rb.add_trajectory(rollout)                # one online episode [T]
+        >>> rb.add_episodes(res.episodes, keys=("state", "action"))   # run_episodes' episodes
         >>> batch = rb.sample(256)                    # [256, 20]: state, action, return_to_go, timestep, mask
     """
 
@@ -387,6 +388,12 @@ class TrajectoryReplayBuffer:
             )
         lengths = None if length is None else torch.tensor([int(length)])
         return int(self.extend(trajectory.unsqueeze(0), lengths)[0])
+
+    def add_episodes(self, episodes: Iterable[TensorDictBase], keys: Sequence[str]) -> int:
+        """Adds rollout episodes ``[T]`` (e.g. :func:`~trakdis.evaluation.run_episodes` with
+        ``keep_episodes=True``) in order, each as the trajectory of its entries ``keys``
+        (:func:`~trakdis.data.episode_to_trajectory`); returns how many were kept."""
+        return sum(self.add_trajectory(episode_to_trajectory(ep, keys=keys)) >= 0 for ep in episodes)
 
     def extend(self, trajectories: TensorDictBase, lengths: torch.Tensor | None = None) -> torch.Tensor:
         """Adds online trajectories ``[N, T]`` in order; each replaces the oldest stored one (or the

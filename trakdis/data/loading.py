@@ -6,21 +6,26 @@ automatically (an interrupted collection resumes when the same command runs agai
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 from tensordict import TensorDict
 
+from trakdis.transforms import OutOfViewFill, StateNoise, StateNormalizer, chain
 from trakdis.utils.phases import PhaseTimer, available_workers
+from trakdis.utils.run import RunState
 
 from .buffer import TrajectoryReplayBuffer
 from .dataset import DatasetError, collect_expert_dataset, load_expert_dataset, partial_path, read_meta
+from .layout import encode_trajectories, real_steps, split_episodes_train_val, valid_mask
 
-__all__ = ["DataConfig", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed", "load_offline_data", "load_trajectories",
-           "make_buffer"]
+__all__ = ["DataConfig", "TrainValSteps", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed",
+           "load_encoded_dataset", "load_offline_data", "load_train_val_steps", "load_trajectories", "make_buffer",
+           "offline_state_buffer"]
 
 
 @dataclass
@@ -154,6 +159,63 @@ def load_offline_data(cfg: DataConfig, *, phases: PhaseTimer, task: str, horizon
     return trajectories, lengths
 
 
+def load_encoded_dataset(cfg: DataConfig, encoder: Callable[[torch.Tensor], torch.Tensor], *, task: str, horizon: int,
+                         seed: int, keys: Sequence[str], log: Callable[..., None] = print,
+                         progress: bool = True) -> tuple[TensorDict, torch.Tensor, Path]:
+    """``(episodes [N, horizon], lengths [N], path)``: the dataset with images of ``cfg``
+    (:func:`ensure_dataset`: collected first if missing) as an image policy sees it, its images
+    through ``encoder`` as ``"state_estimate"`` beside the entries ``keys``
+    (:func:`~trakdis.data.encode_trajectories`)."""
+    path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, log=log, progress=progress)
+    data, lengths = load_trajectories(path, keys=("pixels", *keys))
+    return encode_trajectories(data, encoder, keys=keys), lengths, path
+
+
+class TrainValSteps(NamedTuple):
+    """The steps of :func:`load_train_val_steps`."""
+
+    path: Path
+    """the dataset directory"""
+    train: TensorDict
+    """training steps ``[N]``"""
+    val: TensorDict | None
+    """validation steps ``[M]`` (None without validation episodes)"""
+    train_episodes: torch.Tensor
+    """the dataset's training episodes"""
+    val_episodes: torch.Tensor
+    """its validation episodes"""
+
+
+def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int, keys: Sequence[str],
+                         val_fraction: float, image_size: int = 32, extra_noise: Sequence[float] = (),
+                         log: Callable[..., None] = print, progress: bool = True) -> TrainValSteps:
+    """The real steps (entries ``keys``) of the dataset with images of ``cfg`` (:func:`ensure_dataset`:
+    collected first if missing), split by episode into training and validation steps
+    (:func:`~trakdis.data.split_episodes_train_val` with ``val_fraction`` and ``seed``).
+
+    ``extra_noise``: the training steps also hold all the steps of the datasets of ``cfg``'s size
+    collected with these expert movement noises (default paths, seed ``seed + 1``; each found or
+    collected before the split), each announced as ``"training images +<n> from <path>"``; the
+    validation steps stay the main dataset's."""
+    path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, image_size=image_size, log=log,
+                          progress=progress)
+    data, lengths = load_trajectories(path, keys=keys)
+    extra = []
+    for noise in extra_noise:
+        extra_cfg = dataclasses.replace(cfg, path=None, expert_noise=float(noise))
+        extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=seed + 1, pixels=True,
+                                    image_size=image_size, log=log, progress=progress)
+        extra.append((extra_path, *load_trajectories(extra_path, keys=keys)))
+    train_episodes, val_episodes = split_episodes_train_val(data.shape[0], val_fraction, seed=seed)
+    train = real_steps(data, lengths, train_episodes)
+    val = real_steps(data, lengths, val_episodes) if len(val_episodes) else None
+    for extra_path, extra_data, extra_lengths in extra:
+        extra_steps = real_steps(extra_data, extra_lengths)
+        train = torch.cat([train, extra_steps])
+        log(f"training images +{extra_steps.shape[0]} from {extra_path}")
+    return TrainValSteps(path, train, val, train_episodes, val_episodes)
+
+
 def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float, keys: Sequence[str],
                 seed: int | None = None, transform=None, early_windows: bool = False, replacement: str = "oldest",
                 relabel_return_to_go: bool = True):
@@ -163,3 +225,39 @@ def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float,
     return TrajectoryReplayBuffer(capacity, context_len, max_len, keys=keys, rtg_scale=rtg_scale, seed=seed,
                                   transform=transform, early_windows=early_windows, replacement=replacement,
                                   relabel_return_to_go=relabel_return_to_go)
+
+
+def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer, task: str,
+                         horizon: int, seed: int, context_len: int, rtg_scale: float = 1.0, min_scale: float = 1e-3,
+                         state_noise: float = 0.0, fill: OutOfViewFill | None = None, early_windows: bool = False,
+                         replacement: str = "oldest", collect_pixels: bool = False, log: Callable[..., None] = print,
+                         progress: bool = True) -> tuple[TrajectoryReplayBuffer, StateNormalizer]:
+    """``(buffer, normalizer)``: a teacher's replay buffer of the expert dataset's states and actions,
+    its sampled windows standardised by ``normalizer`` (a :class:`~trakdis.transforms.StateNormalizer`
+    of ``"state"``, the acting policy's too): with ``state_noise`` > 0, Gaussian noise of that std
+    (seed ``seed + 7919``) on the raw states first; ``fill`` (``--mask-unseen-pickers``) carried by
+    the normaliser, which masks the out-of-view pickers before standardising. The data stay raw.
+
+    ``state`` is the run's :class:`~trakdis.utils.run.RunState`, holding the counters
+    ``"normalizer"``, ``"best_return"`` and ``"buffer_capacity"`` (None: the dataset's number of
+    episodes). A fresh run loads the dataset (:func:`load_offline_data`), sets the counters (the
+    statistics of its real raw states, ``min_scale`` the floor of the std; its best episode return)
+    and fills the buffer. A resumed run does not read the dataset: the counters are the
+    checkpoint's, and the buffer, registered as the state's object ``"buffer"``, is filled by
+    ``state.load()``."""
+    if not state.resuming:
+        trajectories, lengths = load_offline_data(cfg, phases=phases, task=task, horizon=horizon, seed=seed,
+                                                  collect_pixels=collect_pixels, log=log, progress=progress)
+        state["normalizer"] = StateNormalizer.fit(trajectories["state"][valid_mask(lengths, trajectories.shape[1])],
+                                                  min_scale=min_scale, fill=fill).state_dict()
+        state["best_return"] = float(trajectories["reward"].sum(dim=(-2, -1)).max())
+        if state["buffer_capacity"] is None:
+            state["buffer_capacity"] = int(trajectories.shape[0])
+    normalizer = StateNormalizer.from_state_dict(state["normalizer"])
+    noise = StateNoise(state_noise, in_keys=["state"], seed=seed + 7919) if state_noise > 0 else None
+    buffer = make_buffer(state["buffer_capacity"], context_len, horizon, rtg_scale, keys=("state",), seed=seed,
+                         transform=chain(noise, normalizer), early_windows=early_windows, replacement=replacement)
+    state.objects["buffer"] = buffer
+    if not state.resuming:
+        buffer.load_offline(trajectories, lengths)
+    return buffer, normalizer

@@ -25,6 +25,7 @@ comparable, and the difference of two policies' scores is a paired one.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 from dataclasses import dataclass, field
@@ -262,13 +263,16 @@ class RunEnvs:
     pending in ``evals``, owned for a ``with`` block: :meth:`start_workers` starts their worker
     processes in a thread (beside training), :meth:`join_workers` waits for them as the phase ``"env
     worker start (after training)"``, :meth:`close` closes one early; on exit the pending jobs are
-    cancelled and the envs closed, as the phase ``"env worker shutdown"`` (a failed start is raised
-    there unless another error is in flight)."""
+    cancelled and the envs closed, in order, as the phase ``"env worker shutdown"`` (a failed start is
+    raised there unless another error is in flight). ``phases`` None: a run that times no phases."""
 
-    def __init__(self, phases: PhaseTimer, *envs: Any, evals: EvalProtocol | None = None):
+    def __init__(self, phases: PhaseTimer | None, *envs: Any, evals: EvalProtocol | None = None):
         self.phases, self.evals = phases, evals
         self.envs = [env for env in envs if env is not None]
         self._starting = None
+
+    def _phase(self, name: str) -> Any:
+        return contextlib.nullcontext() if self.phases is None else self.phases.phase(name)
 
     def start_workers(self, start: bool = True) -> None:
         """Start the envs' workers in a thread (``start=False``: none, e.g. envs that only describe
@@ -279,7 +283,7 @@ class RunEnvs:
 
     def join_workers(self) -> None:
         """Wait for :meth:`start_workers` (what training did not hide), raising a failure."""
-        with self.phases.phase("env worker start (after training)"):
+        with self._phase("env worker start (after training)"):
             self._starting.join()
 
     def close(self, env: Any) -> None:
@@ -298,7 +302,7 @@ class RunEnvs:
 
         if self.evals is not None:
             self.evals.cancel_pending()
-        with self.phases.phase("env worker shutdown"):
+        with self._phase("env worker shutdown"):
             try:
                 if self._starting is not None:  # never hides an error in flight; raises its own otherwise
                     self._starting.join(raise_error=exc is None)

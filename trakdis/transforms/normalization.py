@@ -99,9 +99,10 @@ class ProprioceptionOverride:
         return td
 
 
-def chain(*steps: Callable[[Any], Any]) -> Callable[[Any], Any]:
-    """One callable applying ``steps`` (callables on a TensorDict, each returning it) in order;
-    none: the identity."""
+def chain(*steps: Callable[[Any], Any] | None) -> Callable[[Any], Any]:
+    """One callable applying ``steps`` (callables on a TensorDict, each returning it) in order,
+    skipping ``None`` (an optional step that is off); none: the identity."""
+    steps = tuple(step for step in steps if step is not None)
 
     def apply(td):
         for step in steps:

@@ -3,8 +3,9 @@
 tyro turns a (nested) dataclass into options: ``--field VALUE``, ``--section.field VALUE`` for
 a nested dataclass, ``--flag`` / ``--no-flag`` for booleans, several values for tuples, ``None``
 for optional fields, the choices of a ``Literal``, and help text from the attribute docstring
-written below each field. A bad value exits with a message naming the option, as does a
-``ValueError`` raised by the dataclass's ``__post_init__``.
+written below each field or from a comment on the field's own line (``steps: int = 10  # number
+of updates``). A bad value exits with a message naming the option, as does a ``ValueError``
+raised by the dataclass's ``__post_init__``.
 
 What is left here is the glue tyro does not have:
 
