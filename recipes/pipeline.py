@@ -165,7 +165,8 @@ def main(argv=None) -> pd.DataFrame:
                         columns=("task", "policy", "n", "mean", "std", "p25", "p50", "p75", "x_teacher"))
     run.finish()
     if timings:
-        run.print(f"wall time {sum(timings.values()):.0f} s: " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items()))
+        stages = ", ".join(f"{k} {v:.0f}" for k, v in timings.items())
+        run.print(f"wall time {time.time() - run.t0:.0f} s; stages (s): {stages}")
     print((run.dir / "summary.md").read_text())
     return pd.read_csv(run.dir / "summary.csv")
 
