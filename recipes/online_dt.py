@@ -24,10 +24,10 @@ from trakdis.modules import DTConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle
-from trakdis.training import run_updates, train_updates
+from trakdis.training import run_updates, train_candidates
 from trakdis.transforms import OutOfViewFill
 from trakdis.utils.phases import available_workers
-from trakdis.utils.run import Run, RunConfig, RunState
+from trakdis.utils.run import Run, RunConfig, RunState, seed_everything
 
 @dataclass
 class OnlineDTConfig(OptimConfig, RunConfig):
@@ -57,6 +57,9 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     early_windows: bool = True
     """also sample windows that begin before an episode's first step (the DT/ODT reference: --no-early-windows)"""
     offline_updates: int = 1500  # offline pretraining updates
+    offline_candidates: int = 1
+    """offline teachers trained from independent initialisations; the best on --selection-episodes goes online"""
+    selection_episodes: int = 20  # train-split episodes that score each offline candidate
     online_rounds: int = 8  # online rounds (roll out, add to the buffer, update)
     episodes_per_round: int = 8  # episodes rolled out per online round (train split; their actions: --exploration)
     updates_per_round: int = 150  # updates after each online rollout
@@ -87,6 +90,9 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     def __post_init__(self):
         if self.horizon < 1:  # checked while parsing, before the run directory exists
             raise ValueError(f"--horizon {self.horizon}: the episode length must be >= 1")
+        if self.offline_candidates < 1 or self.selection_episodes < 1:
+            raise ValueError(f"--offline-candidates {self.offline_candidates}, --selection-episodes "
+                             f"{self.selection_episodes}: both must be >= 1")
         if self.expert_episodes < 1:
             raise ValueError(f"--expert-episodes {self.expert_episodes}: must be >= 1")
 
@@ -107,14 +113,24 @@ def main(argv=None) -> dict:
     cfg = run.cfg
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon)
-    actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
-    loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
-                              action_eps=dt_cfg.action_eps)
-    updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
+
+    def build():  # the DT, its loss and their optimiser (again for each offline candidate after the first)
+        actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
+        loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
+                                  action_eps=dt_cfg.action_eps)
+        return actor, cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
+
+    def fresh_state(k: int) -> dict:  # offline candidate k's initialisation, drawn from its own seed
+        seed_everything(cfg.seed + 1000 * k)
+        return build()[1].state_dict()
+
+    actor, updater = build()
+    offline_total = cfg.offline_candidates * cfg.offline_updates  # the updates before the online phase
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
               f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
     state = RunState(run, {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
-                           "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None},
+                           "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None,
+                           "candidate": 0, "candidate_scores": [None] * cfg.offline_candidates, "candidate_kept": None},
                    step_key="updates", phases_key="phases", updater=updater)
     phases = state.phases
     # 1. the expert data in the replay buffer. The DT reads standardised states (buffer windows and acting; noisy
@@ -144,17 +160,23 @@ def main(argv=None) -> dict:
                                 on_scores=lambda s: state.update(expert_eval=float(np.mean(s))))
         # 3. offline pretraining; the env workers start (spawn, imports) on the core that training leaves idle
         envs.start_workers(cfg.collector == "sync")  # multi_sync: these envs only describe the processes' envs
-        with phases.phase("offline training"):
-            if not train_updates(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
-                                 total=cfg.offline_updates, log_every=cfg.log_every, desc="offline",
-                                 checkpoint_every=cfg.checkpoint_every, log_extra={"phase": 0}):
-                return dict(state)
+        # (--offline-candidates N: N teachers in turn, each scored on train-split episodes in the background)
+        if not train_candidates(
+                run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state, phases=phases,
+                candidates=cfg.offline_candidates, total=cfg.offline_updates, log_every=cfg.log_every,
+                checkpoint_every=cfg.checkpoint_every, log_extra={"phase": 0},
+                fresh_state=fresh_state,
+                save_policy=lambda path: handle.save(path, dt_cfg),
+                score=lambda path, k: evals.scores_in_background(
+                    run, path, phases, f"offline candidate {k + 1}", step=(k + 1) * cfg.offline_updates,
+                    episodes=cfg.selection_episodes, seed=cfg.seed + 20_000)):
+            return dict(state)
         envs.join_workers()
         if state["offline_eval"] is None:
             state.once("offline_policy_saved", lambda: handle.save(run.dir / "policy_offline.pt", dt_cfg))  # resumed: moved on
             background = cfg.background_eval and state["rounds"] < cfg.online_rounds
             offline_res = evals.evaluate(run, handle, eval_env, phases, "offline teacher", step=state["updates"],
-                                         tag="after offline pretraining", background_step=cfg.offline_updates,
+                                         tag="after offline pretraining", background_step=offline_total,
                                          background=run.dir / "policy_offline.pt" if background else None,
                                          on_scores=lambda s: state.update(offline_eval=float(s.mean()), offline_scores=s.tolist()))
             if offline_res is not None:
@@ -187,7 +209,7 @@ def main(argv=None) -> dict:
                 if cfg.eval_every and state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.online_rounds:
                     evals.evaluate(run, handle, eval_env, phases, "mid-run", step=state["updates"],
                                    tag=f"after round {state['rounds']}")
-                if state.save_and_should_stop(cfg.offline_updates + cfg.online_rounds * cfg.updates_per_round, unit="update"):
+                if state.save_and_should_stop(offline_total + cfg.online_rounds * cfg.updates_per_round, unit="update"):
                     return dict(state)
             envs.close(explore_env)  # its workers' cores go to the final evaluation
         res = offline_res if cfg.online_rounds == 0 and offline_res is not None else evals.evaluate(  # no update since

@@ -8,8 +8,10 @@ from tensordict import TensorDict
 
 from quadratic_loss import Quadratic
 from trakdis.optim import Updater
-from trakdis.training import (eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch,
-                              train_updates)
+from trakdis.training import (eval_batches, mixture_shares, run_updates, shuffled_batches, train_candidates,
+                              train_epoch, train_updates)
+from trakdis.utils.checkpoint import load_checkpoint, save_checkpoint
+from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -42,6 +44,51 @@ def test_cadence_stop_and_resume(tmp_path):
     run, state, done, logged, _ = loop(tmp_path / "b", "--resume")
     assert done and state.resuming and state["updates"] == 7 and logged == [6, 7]
     assert state.objects["updater"].updates == 7
+
+
+def candidates_loop(tmp_path, *argv, candidates=3, total=4):
+    """Candidate k starts from w = (k + 1) * [1, 1] (candidate 0: the updater as built) and scores
+    -|w| after its updates, read back from the policy file it saved: the smallest w wins."""
+    run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "a", "--no-progress", *argv])
+    updater = Updater(Quadratic(), optimizer="adam", lr=0.05)
+    state = RunState(run, {"updates": 0}, step_key="updates", updater=updater)
+    state.load()
+    scored = []
+
+    def fresh_state(k):
+        fresh = Updater(Quadratic(), optimizer="adam", lr=0.05)
+        fresh.loss_module.w.data.fill_(k + 1.0)
+        return fresh.state_dict()
+
+    def score(path, k):
+        scored.append(k)
+        w = load_checkpoint(path)["w"]
+        return lambda: [-float(w.norm()), -float(w.norm())]
+
+    done = train_candidates(run, updater, TensorDict, state=state, phases=PhaseTimer(), candidates=candidates,
+                            total=total, fresh_state=fresh_state, score=score, log_every=2, checkpoint_every=2,
+                            save_policy=lambda path: save_checkpoint(path, {"w": updater.loss_module.w.detach().clone()}),
+                            log_extra={"phase": 0})
+    return run, state, done, scored
+
+
+def test_candidates_keep_the_best_score_and_resume(tmp_path):
+    run, state, done, scored = candidates_loop(tmp_path, candidates=3)
+    assert done and scored == [0, 1, 2] and state["candidate"] == 3 and state["updates"] == 12
+    assert state["candidate_kept"] == 0 and state["candidate_scores"][0] == max(state["candidate_scores"])
+    kept = load_checkpoint(run.dir / "candidates" / "policy_0.pt")["w"]
+    assert torch.equal(state.objects["updater"].loss_module.w.detach(), kept)  # the kept one, not the last
+    frame = run.logger.frame()
+    assert frame["step"].tolist() == [2, 4, 6, 8, 10, 12] and frame["candidate"].tolist() == [0, 0, 1, 1, 2, 2]
+    # stopped inside candidate 1 (candidate 0's scoring lost with the process): scored again on resume
+    run, state, done, scored = candidates_loop(tmp_path / "b", "--stop-after", "6")
+    assert not done and scored == [0] and state["candidate"] == 1
+    run, state, done, scored = candidates_loop(tmp_path / "b", "--resume")
+    assert done and scored == [0, 1, 2] and state["candidate_kept"] == 0
+    assert torch.equal(state.objects["updater"].loss_module.w.detach(), kept)
+    # one candidate: train_updates, no files
+    run, state, done, scored = candidates_loop(tmp_path / "c", candidates=1)
+    assert done and scored == [] and state["updates"] == 4 and not (run.dir / "candidates").exists()
 
 
 def test_shuffled_batches_cover_the_data_once_in_a_seeded_order():

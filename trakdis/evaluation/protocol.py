@@ -46,13 +46,14 @@ __all__ = ["EvalProtocol", "RunEnvs", "compare_scores", "log_scores"]
 
 def log_scores(run: Any, step: int, prefix: str, tag: str, scores: Sequence[float] | np.ndarray,
                returns: Sequence[float] | np.ndarray | None = None, *, detail: str = "", note: str = "",
-               extra: dict[str, float] | None = None) -> dict[str, float]:
+               extra: dict[str, float] | None = None, split: str = "eval") -> dict[str, float]:
     """Log ``<prefix>/normalized_performance`` and ``<prefix>/std`` (and ``<prefix>/return``, the
     mean of ``returns``, when given; and ``extra``) at ``step`` in ``run``'s log, and print one line.
 
     With ``returns`` the line reads ``"<tag>: normalized performance m +- s (std; standard error e;
     return r, n eval episodes); <detail>"``; without, ``"<tag>: normalized performance m +- s (n eval
-    episodes<note>)"``. ``run`` is a :class:`~trakdis.utils.run.Run` (``log``, ``print``)."""
+    episodes<note>)"`` (``split`` names the episodes). ``run`` is a :class:`~trakdis.utils.run.Run`
+    (``log``, ``print``)."""
     s = summarize(scores)
     metrics = {f"{prefix}/normalized_performance": s["mean"], f"{prefix}/std": s["std"]}
     if returns is not None:
@@ -61,10 +62,10 @@ def log_scores(run: Any, step: int, prefix: str, tag: str, scores: Sequence[floa
     run.log(step, metrics)
     if returns is not None:
         run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} (std; standard error "
-                  f"{standard_error(scores):.3f}; return {np.mean(returns):.3f}, {s['n']} eval episodes)"
+                  f"{standard_error(scores):.3f}; return {np.mean(returns):.3f}, {s['n']} {split} episodes)"
                   + (f"; {detail}" if detail else ""))
     else:
-        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} ({s['n']} eval episodes{note})")
+        run.print(f"{tag}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} ({s['n']} {split} episodes{note})")
     return metrics
 
 
@@ -162,7 +163,7 @@ class EvalProtocol:
         return job
 
     def finish_background(self, run: Any, job: BackgroundEvaluation, phases: PhaseTimer, what: str, *, step: int,
-                          tag: str, prefix: str = "eval") -> EpisodeResults:
+                          tag: str, prefix: str = "eval", split: str = "eval") -> EpisodeResults:
         """Wait for ``job``, book its time in ``phases`` and log its scores at ``step``; a job of
         :meth:`expert_baseline` also writes the expert's score cache."""
         with phases.phase(f"waiting for the background evaluation ({what})"):
@@ -170,10 +171,24 @@ class EvalProtocol:
             phases.add_background(f"evaluation ({what}, background)", job.pid, episodes=job.num_episodes,
                                   wall=job.wall_seconds, cpu=job.cpu_seconds, workers=1)
         log_scores(run, step, prefix, tag, res.final_performance, res.returns,
-                   detail=f"{job.num_episodes} episodes in {job.wall_seconds:.0f} s in a background process")
+                   detail=f"{job.num_episodes} episodes in {job.wall_seconds:.0f} s in a background process",
+                   split=split)
         if getattr(job, "cache_path", None) is not None:
             self._cache(run, job.cache_path, job.cache_key, res)
         return res
+
+    def scores_in_background(self, run: Any, spec: str | Path, phases: PhaseTimer, what: str, *, step: int,
+                             episodes: int, seed: int, split: str = "train",
+                             prefix: str = "selection") -> Callable[[], np.ndarray]:
+        """``episodes`` episodes of the policy file ``spec`` on ``split`` (reseeded with ``seed``, not
+        this protocol's) in a background process; returns a function that waits for them,
+        books and logs them (:meth:`finish_background`, ``<prefix>/*`` at ``step``) and returns the
+        per-episode scores. For choosing among policies on episodes the evaluation never plays."""
+        job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=episodes,
+                                   num_envs=self.num_envs, env_seed=seed, policy_seed=self.policy_seed, split=split)
+        phases.exclude(job.pid)
+        return lambda: self.finish_background(run, job, phases, what, step=step, tag=what, prefix=prefix,
+                                              split=split).final_performance
 
     def evaluate(self, run: Any, handle: Any, env: Any, phases: PhaseTimer, what: str, *, step: int, tag: str,
                  background: str | Path | None = None, background_step: int | None = None,
