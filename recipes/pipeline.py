@@ -42,6 +42,10 @@ from trakdis.policies import load_policy
 from trakdis.utils.run import Run, RunConfig
 
 RECIPES = Path(__file__).resolve().parent
+# The stages' own evaluations repeat what the table measures on --trials episodes: short ones only
+# (the teacher on 10 episodes, the student before and after distillation; the same models).
+TEACHER_EVAL = ["--eval-episodes", "10", "--no-eval-expert"]
+STUDENT_EVAL = ["--no-eval-teacher", "--eval-every", "0"]
 
 
 @dataclass
@@ -136,7 +140,7 @@ def main(argv=None) -> pd.DataFrame:
     timings: dict[str, float] = {}
     mask = ["--mask-unseen-pickers"] if cfg.mask_unseen_pickers else []
     teacher = stage(run, "online_dt", f"{name}-teacher", "policy.pt",
-                    ["--task", cfg.task, "--collect-pixels", *mask, *shlex.split(cfg.teacher_args)], timings)
+                    ["--task", cfg.task, "--collect-pixels", *mask, *TEACHER_EVAL, *shlex.split(cfg.teacher_args)], timings)
     rows = []
     horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
     evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
@@ -146,7 +150,8 @@ def main(argv=None) -> pd.DataFrame:
         encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
                         ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)], timings)
         student = stage(run, "distill", f"{name}-student", "policy.pt",
-                        ["--teacher", str(teacher), "--encoder", str(encoder), *shlex.split(cfg.student_args)], timings)
+                        ["--teacher", str(teacher), "--encoder", str(encoder), *STUDENT_EVAL, *shlex.split(cfg.student_args)],
+                        timings)
         directories = {"expert": finish_background(run, expert, timings)}
     finally:
         if isinstance(expert, BackgroundStage) and expert.proc.poll() is None:  # an error above: do not leave it running

@@ -339,6 +339,10 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     assert (table["n"] == 2).all() and table.loc[1, "x_teacher"] == pytest.approx(1.0)
     assert "| student |" in (workdir / "runs" / "pipeline" / "pipe" / "summary.md").read_text()
     assert (workdir / "runs" / "distill" / "pipe-student" / "policy.pt").exists()
+    # the stages' own evaluations: no teacher or expert beside the student, no mid-run ones (the table has them)
+    student_log = read_log(workdir / "runs" / "distill" / "pipe-student")
+    assert "eval_teacher/normalized_performance" not in student_log
+    assert "eval_expert/normalized_performance" not in read_log(workdir / "runs" / "online_dt" / "pipe-teacher")
     again = run_recipe(workdir, "pipeline", "--resume", "--name", "pipe")
     assert again.stdout.count("skipped") == 6
 
