@@ -164,8 +164,7 @@ def main(argv=None) -> dict:
         if not train_candidates(
                 run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state, phases=phases,
                 candidates=cfg.offline_candidates, total=cfg.offline_updates, log_every=cfg.log_every,
-                checkpoint_every=cfg.checkpoint_every, log_extra={"phase": 0},
-                fresh_state=fresh_state,
+                checkpoint_every=cfg.checkpoint_every, log_extra={"phase": 0}, fresh_state=fresh_state,
                 save_policy=lambda path: handle.save(path, dt_cfg),
                 score=lambda path, k: evals.scores_in_background(
                     run, path, phases, f"offline candidate {k + 1}", step=(k + 1) * cfg.offline_updates,
