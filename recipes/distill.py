@@ -176,8 +176,8 @@ def main(argv=None) -> dict:
                                "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
     state.save()
     run.finish()
-    teacher_eval = float("nan") if state["teacher_eval"] is None else state["teacher_eval"]
-    run.print(f"eval normalized performance: teacher {teacher_eval:.3f}, student before {state['initial_eval']:.3f}, "
+    teacher = "not evaluated" if state["teacher_eval"] is None else f"{state['teacher_eval']:.3f}"
+    run.print(f"eval normalized performance: teacher {teacher}, student before {state['initial_eval']:.3f}, "
               f"after {final:.3f} ({cfg.eval_episodes} episodes)")
     return dict(state)
 
