@@ -15,6 +15,7 @@
    low-priority background process from the end of stage 1 on, on the core that the encoder's and
    the student's training leave idle (``--no-background-expert``: after them); the teacher's and
    the student's on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
+   The stages' own evaluations are kept short (``TEACHER_EVAL``, ``STUDENT_EVAL``): the table has them.
 
 Each stage is an ordinary run of its recipe under ``<root>/<recipe>/<name>-<stage>``; a stage whose
 output file exists is skipped and an interrupted one is resumed, so ``--resume`` continues the
