@@ -129,8 +129,7 @@ def main(argv=None) -> dict:
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
               f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
     state = RunState(run, {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
-                           "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None,
-                           "candidate": 0, "candidate_scores": [None] * cfg.offline_candidates, "candidate_kept": None},
+                           "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None},
                    step_key="updates", phases_key="phases", updater=updater)
     phases = state.phases
     # 1. the expert data in the replay buffer. The DT reads standardised states (buffer windows and acting; noisy

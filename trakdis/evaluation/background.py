@@ -88,7 +88,7 @@ class BackgroundEvaluation:
             raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        self.spec, self.num_episodes = str(spec), int(num_episodes)
+        self.spec, self.num_episodes, self.split = str(spec), int(num_episodes), split
         if self.spec != "expert" and not Path(spec).exists():
             raise FileNotFoundError(f"background evaluation: no policy file {self.spec}")
         kwargs = dict(task=task, horizon=horizon, num_episodes=self.num_episodes, num_envs=int(num_envs),

@@ -152,18 +152,20 @@ class EvalProtocol:
             close_env(env)
 
     # ------------------------------------------------------------------ background evaluations
-    def in_background(self, spec: str | Path, phases: PhaseTimer, episodes: int | None = None) -> BackgroundEvaluation:
+    def in_background(self, spec: str | Path, phases: PhaseTimer, episodes: int | None = None, *,
+                      seed: int | None = None, split: str = "eval") -> BackgroundEvaluation:
         """These episodes (the first ``episodes`` of them) of the policy file ``spec`` (or ``"expert"``)
         in a background process at low priority, left out of ``phases`` until :meth:`finish_background`
-        books it."""
+        books it; ``seed`` and ``split`` (default: this protocol's) for other episodes."""
         episodes = self.episodes if episodes is None else episodes
         job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=episodes,
-                                   num_envs=self.num_envs, env_seed=self.seed, policy_seed=self.policy_seed)
+                                   num_envs=self.num_envs, env_seed=self.seed if seed is None else seed,
+                                   policy_seed=self.policy_seed, split=split)
         phases.exclude(job.pid)
         return job
 
     def finish_background(self, run: Any, job: BackgroundEvaluation, phases: PhaseTimer, what: str, *, step: int,
-                          tag: str, prefix: str = "eval", split: str = "eval") -> EpisodeResults:
+                          tag: str, prefix: str = "eval") -> EpisodeResults:
         """Wait for ``job``, book its time in ``phases`` and log its scores at ``step``; a job of
         :meth:`expert_baseline` also writes the expert's score cache."""
         with phases.phase(f"waiting for the background evaluation ({what})"):
@@ -172,7 +174,7 @@ class EvalProtocol:
                                   wall=job.wall_seconds, cpu=job.cpu_seconds, workers=1)
         log_scores(run, step, prefix, tag, res.final_performance, res.returns,
                    detail=f"{job.num_episodes} episodes in {job.wall_seconds:.0f} s in a background process",
-                   split=split)
+                   split=job.split)
         if getattr(job, "cache_path", None) is not None:
             self._cache(run, job.cache_path, job.cache_key, res)
         return res
@@ -184,11 +186,9 @@ class EvalProtocol:
         this protocol's) in a background process; returns a function that waits for them,
         books and logs them (:meth:`finish_background`, ``<prefix>/*`` at ``step``) and returns the
         per-episode scores. For choosing among policies on episodes the evaluation never plays."""
-        job = BackgroundEvaluation(spec, task=self.task, horizon=self.horizon, num_episodes=episodes,
-                                   num_envs=self.num_envs, env_seed=seed, policy_seed=self.policy_seed, split=split)
-        phases.exclude(job.pid)
-        return lambda: self.finish_background(run, job, phases, what, step=step, tag=what, prefix=prefix,
-                                              split=split).final_performance
+        job = self.in_background(spec, phases, episodes, seed=seed, split=split)
+        return lambda: self.finish_background(run, job, phases, what, step=step, tag=what,
+                                              prefix=prefix).final_performance
 
     def evaluate(self, run: Any, handle: Any, env: Any, phases: PhaseTimer, what: str, *, step: int, tag: str,
                  background: str | Path | None = None, background_step: int | None = None,
