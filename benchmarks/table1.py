@@ -28,10 +28,8 @@ over seeds with a +-1 std band) and ``timings.csv`` (wall seconds per stage).
 """
 from __future__ import annotations
 
-import importlib.util
 import shlex
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -48,6 +46,7 @@ from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
+from trakdis.utils.stages import Stages  # noqa: E402
 
 RECIPES = ROOT / "recipes"
 
@@ -110,51 +109,13 @@ PRESETS = {"quick": {
     "dt_image_args": "--updates 300 --eval-every 100 --eval-episodes 10",
 }}
 
-_loaded: dict[str, object] = {}
-
-
-def recipe(name: str):
-    """Import ``recipes/<name>.py`` once (the recipes are scripts, not a package)."""
-    if name not in _loaded:
-        spec = importlib.util.spec_from_file_location(f"trakdis_recipe_{name}", RECIPES / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module  # dataclasses look their module up there
-        spec.loader.exec_module(module)
-        _loaded[name] = module
-    return _loaded[name]
-
-
-class Stages:
-    """Runs recipe stages in this process, skipping finished ones, resuming interrupted ones."""
-
-    def __init__(self, run: Run):
-        self.run = run
-        self.timings_path = run.dir / "timings.csv"
-        self.timings = (pd.read_csv(self.timings_path).set_index("stage")["seconds"].to_dict()
-                        if self.timings_path.exists() else {})
-
-    def __call__(self, name: str, run_name: str, output: str, args: list[str], seed: int) -> Path:
-        cfg = self.run.cfg
-        directory = Path(cfg.root) / name / run_name
-        if (directory / output).exists():
-            return directory
-        common = ["--name", run_name, "--root", cfg.root, "--seed", str(seed), "--threads", str(cfg.threads)]
-        if not cfg.progress:
-            common.append("--no-progress")
-        if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv", "config.json")):
-            common.append("--resume")  # an interrupted stage continues (evaluate.py starts over)
-        self.run.print(f"{name}: {directory}")
-        start = time.perf_counter()
-        recipe(name).main([*common, *args])
-        self.timings[f"{name}/{run_name}"] = time.perf_counter() - start
-        frame = pd.DataFrame({"stage": list(self.timings), "seconds": list(self.timings.values())})
-        atomic_write_bytes(self.timings_path, frame.to_csv(index=False).encode())
-        return directory
-
-
-def run_task_seed(stage: Stages, cfg: Table1Config, name: str, task: str, seed: int) -> dict[str, Path]:
+def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str, seed: int) -> dict[str, Path]:
     """All stages of one task and seed; returns ``{method: evaluation run directory}``."""
     base = f"{name}-{task}-s{seed}"
+
+    def stage(recipe: str, run_name: str, output: str, args: list[str], seed: int) -> Path:
+        return stages.run(recipe, run_name, output, args, seed=seed)
+
     methods = set(cfg.methods)
     needs_teacher = methods & {"teacher", "trakdis", "no_aug", "no_pretrain", "no_distill"}
     policies: dict[str, Path] = {}
@@ -275,15 +236,15 @@ def main(argv=None) -> pd.DataFrame:
     run = Run.start("table1", Table1Config, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
     seeds = list(range(cfg.seed, cfg.seed + cfg.seeds))
-    stage = Stages(run)
+    stages = Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
     evals: dict[tuple[str, str], list[Path]] = {}
     for task in cfg.tasks:
         for seed in seeds:
-            for method, directory in run_task_seed(stage, cfg, run.dir.name, task, seed).items():
+            for method, directory in run_task_seed(stages, cfg, run.dir.name, task, seed).items():
                 evals.setdefault((task, method), []).append(directory)
     write_tables(run, cfg, evals)
     pngs = write_curves(run, cfg, seeds)
-    run.print(f"wall time of the stages run so far: {sum(stage.timings.values()):.0f} s (timings.csv)")
+    run.print(f"wall time of the stages run so far: {sum(stages.timings.values()):.0f} s (timings.csv)")
     run.print(f"wrote {run.dir / 'table1.md'}" + "".join(f", {p.name}" for p in pngs))
     print((run.dir / "table1.md").read_text())
     return pd.read_csv(run.dir / "table1.csv")

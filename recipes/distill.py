@@ -28,33 +28,23 @@ from trakdis.utils.run import Run, RunConfig, RunState
 class DistillConfig(OptimConfig, RunConfig):
     """Distil the privileged teacher into an image-based student."""
 
-    teacher: str = "latest"
-    """teacher policy file or online_dt run directory ('latest': the newest run under <root>/online_dt)"""
-    encoder: str = "latest"
-    """encoder.pt or train_encoder run directory ('latest': the newest run under <root>/train_encoder)"""
-    weight_copy: bool = True
-    """initialise the student with the teacher's weights (--no-weight-copy: ablation No-Pretrain)"""
+    teacher: str = "latest"  # teacher policy file or online_dt run directory ('latest': the newest under <root>)
+    encoder: str = "latest"  # encoder.pt or train_encoder run directory ('latest': the newest under <root>)
+    weight_copy: bool = True  # initialise the student with the teacher's weights (--no-weight-copy: No-Pretrain)
     distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
     state_noise: float = 0.0  # std of Gaussian noise added to the estimated state while training (robustness)
-    proprio_pickers: bool = False
-    """take the student's picker positions from proprioception (the true state), not the encoder"""
-    act: Literal["student", "teacher", "mixed"] = "teacher"
-    """who acts in the training rollouts: the teacher, the student (DAgger) or DAgger's decaying mixture"""
-    teacher_context: Literal["window", "step"] = "window"
-    """what the teacher reads to label a step: the whole window or that step's tokens alone"""
-    expert_data: bool = True
-    """distil on the expert dataset's episodes (--data.*): their images through the encoder, their true states"""
+    proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
+    act: Literal["student", "teacher", "mixed"] = "teacher"  # who acts in the rollouts (student: DAgger; mixed: decaying)
+    teacher_context: Literal["window", "step"] = "window"  # what the teacher reads to label a step: window or step alone
+    expert_data: bool = True  # distil on the expert dataset's episodes (--data.*): images through the encoder
     rounds: int = 10  # rounds of (roll out, update); --no-distill: rounds of updates only
-    episodes_per_round: int = 0
-    """episodes rolled out per round and added to the distillation data (0: the expert dataset only)"""
+    episodes_per_round: int = 0  # episodes rolled out per round into the distillation data (0: the expert data only)
     updates_per_round: int = 50  # updates per round
     batch_size: int = 64  # windows per update
     lr: float = 1e-4  # learning rate
     warmup_steps: int = 20  # linear learning-rate warm-up (updates)
-    loss_function: Literal["nll", "mse"] = "nll"
-    """distillation loss: the student's NLL of the teacher's action (the paper), or the squared error of the means"""
-    return_to_go: Literal["acting", "hindsight"] = "acting"
-    """return-to-go of the rollouts' windows: the acting policy's countdown, or the hindsight return reached"""
+    loss_function: Literal["nll", "mse"] = "nll"  # the student's NLL of the teacher's action (paper), or squared error
+    return_to_go: Literal["acting", "hindsight"] = "acting"  # rollouts' return-to-go: the acting countdown, or reached
     kl_coef: float = 0.0  # weight of an extra teacher-student KL term (0: the paper's NLL only)
     buffer_capacity: int = 200  # trajectories kept for distillation
     early_windows: bool = True  # also sample windows that begin before an episode's first step (see online_dt.py)
@@ -64,6 +54,11 @@ class DistillConfig(OptimConfig, RunConfig):
     eval_teacher: bool = True  # also evaluate the teacher on the evaluation episodes
     num_envs: int = 2  # environments stepped together
     parallel: bool = False  # step them in subprocesses (ParallelEnv)
+
+    def __post_init__(self):  # checked while parsing, before the run directory exists
+        if self.episodes_per_round < 0 or (self.distill and self.episodes_per_round == 0 and not self.expert_data):
+            raise ValueError(f"--episodes-per-round {self.episodes_per_round}: distillation needs rollouts (>= 1) "
+                             "or --expert-data")
 
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,
@@ -102,9 +97,6 @@ def main(argv=None) -> dict:
     noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"]) if not cfg.distill and cfg.state_noise > 0 else None
     transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
 
-    if cfg.episodes_per_round < 0 or (cfg.distill and cfg.episodes_per_round == 0 and not cfg.expert_data):
-        raise ValueError(f"--episodes-per-round {cfg.episodes_per_round}: distillation needs rollouts (>= 1) or "
-                         f"--expert-data")
     buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
                          transform=transform, early_windows=cfg.early_windows,
                          relabel_return_to_go=not cfg.distill or cfg.expert_data or cfg.return_to_go == "hindsight")

@@ -25,7 +25,6 @@ import sys
 from dataclasses import dataclass, field
 from typing import Optional
 
-import torch
 
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.envs.specs import TaskName

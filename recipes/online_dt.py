@@ -37,64 +37,46 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     horizon: int = 100  # episode length
     data: DataConfig = field(default_factory=DataConfig)  # expert dataset
     model: DTConfig = field(default_factory=DTConfig)  # Decision Transformer
-    min_lr_fraction: float = 0.1
-    """cosine decay of the learning rate to this fraction of --lr by the end of pretraining (1: constant)"""
-    online_lr: float | None = None
-    """constant learning rate of the online phase (default: the last offline one, --lr x --min-lr-fraction)"""
+    min_lr_fraction: float = 0.1  # cosine decay of --lr to this fraction by the end of pretraining (1: constant)
+    online_lr: float | None = None  # constant lr of the online phase (default: the last offline one)
     batch_size: int = 64  # windows per update
     lambda_entropy: float = 0.1  # entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature
     learn_temperature: bool = False  # learn the entropy temperature toward a target entropy of -action_dim (Online DT)
     state_scale_floor: float = 1e-3  # lower bound (metres) of the state normaliser's per-dimension scale
-    state_noise: float = 0.0
-    """std (metres) of Gaussian noise on the states of every training window (the acting state stays exact)"""
-    mask_unseen_pickers: bool = False
-    """train and act with each picker out of the 32x32 camera view replaced by a fixed sentinel xyz"""
+    state_noise: float = 0.0  # std (metres) of Gaussian noise on the training windows' states (acting: exact)
+    mask_unseen_pickers: bool = False  # train and act with a picker out of the 32x32 camera view as a fixed sentinel
     rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)
-    buffer_capacity: int | None = None
-    """trajectories in the replay buffer (default: as many as the offline dataset has)"""
+    buffer_capacity: int | None = None  # trajectories in the replay buffer (default: the offline dataset's number)
     buffer_replacement: Literal["oldest", "lowest_return"] = "lowest_return"
     """which trajectory a rollout replaces in a full buffer: the lowest-return one if it beats it, or the oldest"""
-    early_windows: bool = True
-    """also sample windows that begin before an episode's first step (the DT/ODT reference: --no-early-windows)"""
+    early_windows: bool = True  # also sample windows that begin before an episode's first step (DT/ODT reference: no)
     offline_updates: int = 1500  # offline pretraining updates
-    offline_candidates: int = 1
-    """offline teachers trained from independent initialisations; the best on --selection-episodes goes online"""
+    offline_candidates: int = 1  # offline teachers from independent initialisations; the best goes online
     selection_episodes: int = 20  # train-split episodes that score each offline candidate
     online_rounds: int = 8  # online rounds (roll out, add to the buffer, update)
     episodes_per_round: int = 8  # episodes rolled out per online round (train split; their actions: --exploration)
     updates_per_round: int = 150  # updates after each online rollout
-    exploration_rtg: float | None = None  # initial return-to-go of the online rollouts (default: the evaluation target)
-    offline_control: bool = False
-    """run the online schedule but never add the rollouts to the buffer (the offline-only control)"""
-    exploration: Literal["mean", "sample"] = "mean"
-    """actions of the online rollouts: the policy's mean, or samples as in Online DT"""
-    eval_rtg: float | None = None  # initial return-to-go at evaluation (default: the best return of the offline data)
-    eval_episodes: int = 30  # evaluation episodes (eval split; the same configurations for every evaluation of a run)
+    exploration_rtg: float | None = None  # initial return-to-go of the online rollouts (default: the evaluation's)
+    offline_control: bool = False  # the online schedule without adding the rollouts to the buffer (the control)
+    exploration: Literal["mean", "sample"] = "mean"  # the online rollouts' actions: the policy's mean, or samples
+    eval_rtg: float | None = None  # initial return-to-go at evaluation (default: the offline data's best return)
+    eval_episodes: int = 30  # evaluation episodes (eval split; the same configurations for every evaluation)
     eval_every: int = 0  # also evaluate every N online rounds (0: only after pretraining and at the end)
     eval_expert: bool = True  # also evaluate the scripted expert on the evaluation episodes, for comparison
     expert_episodes: int = 10  # the expert on only the first N of them (its scores vary little: std ~0.04)
-    expert_cache: bool = True
-    """reuse the expert's evaluation cached in <data.root>/expert_scores/ (--no-expert-cache: measure again)"""
-    background_eval: bool = True
-    """evaluate the expert and the offline teacher in a low-priority background process (same numbers)"""
+    expert_cache: bool = True  # reuse the expert's evaluation cached in <data.root>/expert_scores/
+    background_eval: bool = True  # evaluate the expert and the offline teacher in a low-priority background process
     collect_pixels: bool = False  # also store the 32x32 images in the dataset this run collects (for train_encoder.py)
-    num_envs: int = field(default_factory=available_workers)
-    """environments stepped together (default: the available cores, at most 2); sets the eval configurations"""
-    parallel: bool = True
-    """step them in worker processes (ParallelEnv); --no-parallel: in turn in this process (same numbers)"""
-    collector: Literal["sync", "multi_sync"] = "sync"
-    """how batches of episodes are stepped: one Collector here, or a MultiSyncCollector of --num-envs processes"""
+    num_envs: int = field(default_factory=available_workers)  # envs stepped together (default: the cores, at most 2)
+    parallel: bool = True  # step them in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)
+    collector: Literal["sync", "multi_sync"] = "sync"  # one Collector here, or a MultiSyncCollector of --num-envs
     log_every: int = 50  # log training metrics every N updates
     checkpoint_every: int = 500  # checkpoint every N offline updates (online: after every round)
 
-    def __post_init__(self):
-        if self.horizon < 1:  # checked while parsing, before the run directory exists
-            raise ValueError(f"--horizon {self.horizon}: the episode length must be >= 1")
-        if self.offline_candidates < 1 or self.selection_episodes < 1:
-            raise ValueError(f"--offline-candidates {self.offline_candidates}, --selection-episodes "
-                             f"{self.selection_episodes}: both must be >= 1")
-        if self.expert_episodes < 1:
-            raise ValueError(f"--expert-episodes {self.expert_episodes}: must be >= 1")
+    def __post_init__(self):  # checked while parsing, before the run directory exists
+        for name in ("horizon", "offline_candidates", "selection_episodes", "expert_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= 1")
 
 
 PRESETS = {
@@ -114,24 +96,21 @@ def main(argv=None) -> dict:
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon)
 
-    def build():  # the DT, its loss and their optimiser (again for each offline candidate after the first)
+    def build(seed: int | None = None):  # the DT, its loss and their optimiser; offline candidate k: seed + 1000 k
+        if seed is not None:
+            seed_everything(seed)
         actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
         loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                                   action_eps=dt_cfg.action_eps)
         return actor, cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
 
-    def fresh_state(k: int) -> dict:  # offline candidate k's initialisation, drawn from its own seed
-        seed_everything(cfg.seed + 1000 * k)
-        return build()[1].state_dict()
-
     actor, updater = build()
-    offline_total = cfg.offline_candidates * cfg.offline_updates  # the updates before the online phase
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
               f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
     state = RunState(run, {"updates": 0, "rounds": 0, "offline_eval": None, "expert_eval": None, "best_return": None,
                            "normalizer": None, "buffer_capacity": cfg.buffer_capacity, "offline_scores": None},
-                   step_key="updates", phases_key="phases", updater=updater)
-    phases = state.phases
+                     step_key="updates", phases_key="phases", updater=updater)
+    phases, offline_total = state.phases, cfg.offline_candidates * cfg.offline_updates
     # 1. the expert data in the replay buffer. The DT reads standardised states (buffer windows and acting; noisy
     # ones with --state-noise; out-of-view pickers masked with --mask-unseen-pickers); the data stay raw.
     buffer, normalizer = offline_state_buffer(
@@ -145,11 +124,12 @@ def main(argv=None) -> dict:
     explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
     handle = PolicyHandle("teacher", cfg.task, cfg.horizon, actor=actor, observation_key="state",
                           target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
-    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, policy_seed=cfg.seed,
-                         collector=cfg.collector)
+    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000,
+                         policy_seed=cfg.seed, collector=cfg.collector)
     eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
     explore_env = None if state["rounds"] >= cfg.online_rounds else handle.make_env(
         num_envs=cfg.num_envs, split="train", parallel=cfg.parallel, target_return=explore_rtg)
+    sample = lambda: buffer.sample(cfg.batch_size).to(cfg.device)  # noqa: E731
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     offline_res = None
     with RunEnvs(phases, eval_env, explore_env, evals=evals) as envs:  # closes them, cancels unfinished evaluations
@@ -157,13 +137,13 @@ def main(argv=None) -> dict:
             evals.expert_scores(run, eval_env, phases, cache_root=cfg.data.root, use_cache=cfg.expert_cache,
                                 background=cfg.background_eval, episodes=cfg.expert_episodes,
                                 on_scores=lambda s: state.update(expert_eval=float(np.mean(s))))
-        # 3. offline pretraining; the env workers start (spawn, imports) on the core that training leaves idle
+        # 3. offline pretraining (--offline-candidates N: N teachers in turn, each scored on train-split episodes in
+        # the background, the best kept); the env workers start on the core that training leaves idle
         envs.start_workers(cfg.collector == "sync")  # multi_sync: these envs only describe the processes' envs
-        # (--offline-candidates N: N teachers in turn, each scored on train-split episodes in the background)
         if not train_candidates(
-                run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state, phases=phases,
-                candidates=cfg.offline_candidates, total=cfg.offline_updates, log_every=cfg.log_every,
-                checkpoint_every=cfg.checkpoint_every, log_extra={"phase": 0}, fresh_state=fresh_state,
+                run, updater, sample, state=state, phases=phases, candidates=cfg.offline_candidates,
+                total=cfg.offline_updates, log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
+                log_extra={"phase": 0}, fresh_state=lambda k: build(cfg.seed + 1000 * k)[1].state_dict(),
                 save_policy=lambda path: handle.save(path, dt_cfg),
                 score=lambda path, k: evals.scores_in_background(
                     run, path, phases, f"offline candidate {k + 1}", step=(k + 1) * cfg.offline_updates,
@@ -171,15 +151,16 @@ def main(argv=None) -> dict:
             return dict(state)
         envs.join_workers()
         if state["offline_eval"] is None:
-            state.once("offline_policy_saved", lambda: handle.save(run.dir / "policy_offline.pt", dt_cfg))  # resumed: moved on
+            state.once("offline_policy_saved", lambda: handle.save(run.dir / "policy_offline.pt", dt_cfg))
             background = cfg.background_eval and state["rounds"] < cfg.online_rounds
             offline_res = evals.evaluate(run, handle, eval_env, phases, "offline teacher", step=state["updates"],
                                          tag="after offline pretraining", background_step=offline_total,
                                          background=run.dir / "policy_offline.pt" if background else None,
-                                         on_scores=lambda s: state.update(offline_eval=float(s.mean()), offline_scores=s.tolist()))
+                                         on_scores=lambda s: state.update(offline_eval=float(s.mean()),
+                                                                          offline_scores=s.tolist()))
             if offline_res is not None:
                 state.save()
-        # 4. online fine-tuning: roll out, add to the buffer, update
+        # 4. online fine-tuning: roll out (train split), add to the buffer, update
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
@@ -194,13 +175,12 @@ def main(argv=None) -> dict:
                 kept = buffer.add_episodes(res.episodes if not cfg.offline_control else (), keys=("state", "action"))
                 state["rounds"] += 1
                 with phases.phase("online updates"):
-                    metrics = run_updates(updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device),
-                                          cfg.updates_per_round, desc=f"round {state['rounds']}")
+                    metrics = run_updates(updater, sample, cfg.updates_per_round, desc=f"round {state['rounds']}")
                 state["updates"] += cfg.updates_per_round
-                run.log(state["updates"], {**metrics, "phase": 1,
-                                           "online/normalized_performance": float(res.final_performance.mean()),
-                                           "online/return": float(res.returns.mean()), "online/round": state["rounds"],
-                                           "online/kept": kept, "online/buffer_online_fraction": buffer.online_fraction})
+                run.log(state["updates"], {**metrics, "phase": 1, "online/normalized_performance":
+                                           float(res.final_performance.mean()), "online/return": float(res.returns.mean()),
+                                           "online/round": state["rounds"], "online/kept": kept,
+                                           "online/buffer_online_fraction": buffer.online_fraction})
                 run.print(f"round {state['rounds']}/{cfg.online_rounds}: rollout normalized performance "
                           f"{res.final_performance.mean():.3f}, return {res.returns.mean():.3f} ({kept} kept; buffer "
                           f"{buffer.online_fraction:.0%} online), loss_nll {run.logger.last('train/loss_nll'):.3f}; {res.rate()}")

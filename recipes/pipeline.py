@@ -26,13 +26,9 @@ the teacher and encoder stages (the student inherits it from the teacher). Write
 """
 from __future__ import annotations
 
-import importlib.util
-import os
 import shlex
-import subprocess
 import sys
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -41,6 +37,7 @@ from trakdis.envs.specs import TaskName
 from trakdis.evaluation import write_summary_table
 from trakdis.policies import load_policy
 from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.stages import Stages
 
 RECIPES = Path(__file__).resolve().parent
 # The stages' own evaluations repeat what the table measures on --trials episodes: short ones only
@@ -73,106 +70,36 @@ class PipelineConfig(RunConfig):
     """evaluate the teacher and the student on 2 worker processes (--no-parallel: in turn; the same numbers)"""
 
 
-def recipe(name: str):
-    """Import ``recipes/<name>.py`` as a module (the recipes are scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location(f"trakdis_recipe_{name}", RECIPES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-@dataclass
-class BackgroundStage:
-    """A stage running as a subprocess (:func:`stage` with ``background=True``)."""
-
-    proc: subprocess.Popen
-    directory: Path
-    started: float = field(default_factory=time.perf_counter)
-
-
-def stage(run: Run, name: str, run_name: str, output: str, args: list[str], timings: dict[str, float],
-          background: bool = False) -> Path | BackgroundStage:
-    """Run ``recipes/<name>.py`` as ``<root>/<name>/<run_name>`` unless its ``output`` exists; its
-    wall time goes to ``timings[run_name]``. With ``background``, start it instead as a low-priority
-    subprocess (output in ``<run dir>/<run_name>.log``) and return it, for :func:`finish_background`."""
-    cfg = run.cfg
-    directory = Path(cfg.root) / name / run_name
-    if (directory / output).exists():
-        run.print(f"{name}: {directory / output} exists, skipped")
-        return directory
-    common = ["--name", run_name, "--root", cfg.root, "--seed", str(cfg.seed), "--threads", str(cfg.threads)]
-    if not cfg.progress or background:
-        common.append("--no-progress")
-    if cfg.logger != "csv":
-        common += ["--logger", cfg.logger]
-    if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv")):
-        common.append("--resume")  # an interrupted stage continues (evaluate.py starts over)
-    if background:
-        run.print(f"{name}: {run_name} started in the background (log: {run.dir / run_name}.log)")
-        with open(run.dir / f"{run_name}.log", "w") as log:
-            return BackgroundStage(subprocess.Popen([sys.executable, str(RECIPES / f"{name}.py"), *common, *args],
-                                                    stdout=log, stderr=subprocess.STDOUT, preexec_fn=lambda: os.nice(10)),
-                                   directory)
-    start = time.perf_counter()
-    recipe(name).main([*common, *args])
-    timings[run_name] = time.perf_counter() - start
-    run.print(f"{name}: done in {timings[run_name]:.0f} s ({directory})")
-    return directory
-
-
-def finish_background(run: Run, job: Path | BackgroundStage, timings: dict[str, float]) -> Path:
-    """Wait for a stage that :func:`stage` started in the background (a directory: it was skipped);
-    its wall time since the start goes to ``timings`` as ``<run_name> (background)``."""
-    if not isinstance(job, BackgroundStage):
-        return job
-    name = job.directory.name
-    if job.proc.wait() != 0:
-        raise RuntimeError(f"background stage {name} failed (exit code {job.proc.returncode}); see {run.dir / name}.log")
-    timings[f"{name} (background)"] = time.perf_counter() - job.started
-    run.print(f"{name}: done in the background ({job.directory})")
-    return job.directory
-
-
 def main(argv=None) -> pd.DataFrame:
     run = Run.start("pipeline", PipelineConfig, argv, description=__doc__)
-    cfg = run.cfg
-    name = run.dir.name
-    timings: dict[str, float] = {}
+    cfg, name = run.cfg, run.dir.name
+    stages = Stages(run, RECIPES)
     mask = ["--mask-unseen-pickers"] if cfg.mask_unseen_pickers else []
-    teacher = stage(run, "online_dt", f"{name}-teacher", "policy.pt",
-                    ["--task", cfg.task, "--collect-pixels", *mask, *TEACHER_EVAL, *shlex.split(cfg.teacher_args)], timings)
-    rows = []
+    teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt",
+                         ["--task", cfg.task, "--collect-pixels", *mask, *TEACHER_EVAL, *shlex.split(cfg.teacher_args)])
     horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
     evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
-    expert = stage(run, "evaluate", f"{name}-eval-expert", "summary.csv", ["--policy", "expert", *evaluate], timings,
-                   background=cfg.background_expert)
-    try:
-        encoder = stage(run, "train_encoder", f"{name}-encoder", "encoder.pt",
-                        ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)], timings)
-        student = stage(run, "distill", f"{name}-student", "policy.pt",
-                        ["--teacher", str(teacher), "--encoder", str(encoder), *STUDENT_EVAL, *shlex.split(cfg.student_args)],
-                        timings)
-        directories = {"expert": finish_background(run, expert, timings)}
-    finally:
-        if isinstance(expert, BackgroundStage) and expert.proc.poll() is None:  # an error above: do not leave it running
-            expert.proc.terminate()
+    expert = stages.run("evaluate", f"{name}-eval-expert", "summary.csv", ["--policy", "expert", *evaluate],
+                        background=cfg.background_expert)
+    with stages.cleanup(expert):  # an error before it finished: the expert's background stage is stopped
+        encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
+                             ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)])
+        student = stages.run("distill", f"{name}-student", "policy.pt",
+                             ["--teacher", str(teacher), "--encoder", str(encoder), *STUDENT_EVAL,
+                              *shlex.split(cfg.student_args)])
+        directories = {"expert": stages.wait(expert)}
     parallel = ["--parallel"] if cfg.parallel else []
     for label, policy in (("teacher", str(teacher)), ("student", str(student))):
-        directories[label] = stage(run, "evaluate", f"{name}-eval-{label}", "summary.csv",
-                                   ["--policy", policy, *evaluate, *parallel], timings)
-    for label, directory in directories.items():
-        row = pd.read_csv(directory / "summary.csv").iloc[0].to_dict()
-        rows.append({**row, "policy": label})
+        directories[label] = stages.run("evaluate", f"{name}-eval-{label}", "summary.csv",
+                                        ["--policy", policy, *evaluate, *parallel])
+    rows = [{**pd.read_csv(d / "summary.csv").iloc[0].to_dict(), "policy": label} for label, d in directories.items()]
     teacher_mean = rows[1]["mean"]
     for row in rows:
         row["x_teacher"] = row["mean"] / teacher_mean if teacher_mean else float("nan")
     write_summary_table(rows, run.dir / "summary.csv", run.dir / "summary.md",
                         columns=("task", "policy", "n", "mean", "std", "p25", "p50", "p75", "x_teacher"))
     run.finish()
-    if timings:
-        stages = ", ".join(f"{k} {v:.0f}" for k, v in timings.items())
-        run.print(f"wall time {time.time() - run.t0:.0f} s; stages (s): {stages}")
+    stages.report()
     print((run.dir / "summary.md").read_text())
     return pd.read_csv(run.dir / "summary.csv")
 

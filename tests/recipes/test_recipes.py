@@ -298,16 +298,18 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
 
 
 @pytest.mark.parametrize("recipe,args,message", [
-    ("evaluate", ["--state-noise", "-1"], r"--state-noise -1\.0: every noise level must be a finite std >= 0"),
-    ("evaluate", ["--state-noise", "0", "nan"], r"--state-noise nan"),
-    ("evaluate", ["--horizon", "0"], r"--horizon 0"),
+    ("evaluate", ["--task", "ClothFold", "--state-noise", "-1"], r"--state-noise -1\.0: every noise level must be a finite std >= 0"),
+    ("evaluate", ["--task", "ClothFold", "--state-noise", "0", "nan"], r"--state-noise nan"),
+    ("evaluate", ["--task", "ClothFold", "--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--horizon", "0"], r"--horizon 0"),
+    ("online_dt", ["--offline-candidates", "0"], r"--offline-candidates 0: must be >= 1"),
+    ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
 ])
 def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, capsys, recipe, args, message):
     # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exc:
-        load_recipe(recipe).main(["--name", "bad", "--task", "ClothFold", *args])
+        load_recipe(recipe).main(["--name", "bad", *args])
     assert exc.value.code == 2
     assert re.search(message, " ".join(re.sub(r"[│╭╮╰╯─]", " ", capsys.readouterr().err).split()))
     assert list(tmp_path.iterdir()) == []

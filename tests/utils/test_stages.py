@@ -1,0 +1,93 @@
+"""trakdis.utils.stages: recipes run as the stages of a pipeline, skipped, resumed, in the background."""
+import sys
+import textwrap
+
+import pandas as pd
+import pytest
+
+from trakdis.utils.run import Run, RunConfig
+from trakdis.utils.stages import Stages, import_recipe
+
+# A recipe script: records its argv, writes out.txt unless --fail, exits non-zero with --fail.
+RECIPE = textwrap.dedent('''
+    import json, sys
+    from pathlib import Path
+
+    def main(argv):
+        name, root = argv[argv.index("--name") + 1], argv[argv.index("--root") + 1]
+        directory = Path(root) / "toy" / name
+        directory.mkdir(parents=True, exist_ok=True)
+        calls = directory / "calls.json"
+        seen = json.loads(calls.read_text()) if calls.exists() else []
+        calls.write_text(json.dumps([*seen, argv]))
+        if "--fail" in argv:
+            raise SystemExit(3)
+        if "--interrupt" not in argv:
+            (directory / "out.txt").write_text("done")
+
+    if __name__ == "__main__":
+        main(sys.argv[1:])
+''')
+
+
+@pytest.fixture
+def stages(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "recipes").mkdir()
+    (tmp_path / "recipes" / "toy.py").write_text(RECIPE)
+    run = Run.start("pipe", RunConfig, ["--name", "p", "--seed", "5", "--no-progress"])
+    return Stages(run, tmp_path / "recipes", timings_path=run.dir / "timings.csv")
+
+
+def calls(tmp_path, name):
+    import json
+
+    return json.loads((tmp_path / "runs" / "toy" / name / "calls.json").read_text())
+
+
+def test_a_stage_runs_once_then_is_skipped_and_an_interrupted_one_resumes(stages, tmp_path, capsys):
+    directory = stages.run("toy", "a", "out.txt", ["--x", "1"])
+    assert directory.resolve() == tmp_path / "runs" / "toy" / "a" and (directory / "out.txt").exists()
+    assert calls(tmp_path, "a") == [["--name", "a", "--root", "runs", "--seed", "5", "--threads", "1", "--no-progress",
+                                     "--x", "1"]]
+    assert stages.run("toy", "a", "out.txt", []) == directory and len(calls(tmp_path, "a")) == 1
+    assert "exists, skipped" in capsys.readouterr().out
+    stages.run("toy", "b", "out.txt", ["--interrupt"], seed=7)  # killed before its output: a log of it stays
+    (tmp_path / "runs" / "toy" / "b" / "log.csv").write_text("step\n")
+    stages.run("toy", "b", "out.txt", [])
+    first, second = calls(tmp_path, "b")
+    assert first[first.index("--seed") + 1] == "7" and "--resume" not in first and "--resume" in second
+    timings = pd.read_csv(stages.timings_path)
+    assert timings["stage"].tolist() == ["toy/a", "toy/b"]  # the second run of b replaced its row
+    again = Stages(stages.pipeline, stages.recipes, timings_path=stages.timings_path)
+    assert set(again.timings) == {"toy/a", "toy/b"}  # a resumed pipeline keeps the earlier stages' times
+
+
+def test_background_stage_waits_and_failures_name_the_log(stages, tmp_path):
+    job = stages.run("toy", "bg", "out.txt", [], background=True)
+    assert stages.wait(job).resolve() == tmp_path / "runs" / "toy" / "bg" and (job.directory / "out.txt").exists()
+    assert "toy/bg (background)" in stages.timings
+    bad = stages.run("toy", "bad", "out.txt", ["--fail"], background=True)
+    with pytest.raises(RuntimeError, match=r"background stage bad failed \(exit code 3\); see .*bad\.log"):
+        stages.wait(bad)
+
+
+def test_cleanup_stops_a_background_stage_left_running_by_an_error(stages, tmp_path):
+    (tmp_path / "recipes" / "sleepy.py").write_text("import time\ntime.sleep(60)\n")
+    job = stages.run("sleepy", "s", "out.txt", [], background=True)
+    with pytest.raises(KeyError):
+        with stages.cleanup(job):
+            raise KeyError("a foreground stage failed")
+    assert job.proc.wait(timeout=10) != 0
+
+
+def test_import_recipe_names_a_missing_script(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.py"):
+        import_recipe(tmp_path / "nope.py")
+    module = import_recipe(_write(tmp_path / "r.py", "X = 1\n"))
+    assert module.X == 1 and sys.modules[module.__name__] is module
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path

@@ -1,0 +1,146 @@
+"""Recipes run one after another as the stages of a pipeline run (``recipes/pipeline.py``).
+
+Each stage is an ordinary run of a recipe script, ``<root>/<recipe>/<run_name>``: skipped when its
+output file exists, resumed (``--resume``) when a checkpoint or a log shows it was interrupted, so
+that the pipeline itself resumes by running again. A stage runs in this process (the recipe
+imported from its file, its ``main(argv)`` called) or, with ``background=True``, as a low-priority
+subprocess on the core the foreground stages leave idle::
+
+    stages = Stages(run, Path(__file__).parent)
+    teacher = stages.run("online_dt", "cf-teacher", "policy.pt", ["--task", "ClothFold"])
+    job = stages.run("evaluate", "cf-eval-expert", "summary.csv", ["--policy", "expert"], background=True)
+    with stages.cleanup(job):          # an error before wait(): the background stage is terminated
+        encoder = stages.run("train_encoder", "cf-encoder", "encoder.pt", ["--teacher", str(teacher)])
+        expert = stages.wait(job)
+    stages.report()                    # wall seconds per stage
+
+The common options (``--name``, ``--root``, ``--seed``, ``--threads``, ``--no-progress``,
+``--logger``) come from the pipeline run's :class:`~trakdis.utils.run.RunConfig` (``seed=``: another
+seed for one stage). With ``timings_path``, the wall seconds per stage are kept in that CSV (rewritten
+after each stage, read back by a resumed pipeline).
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+from typing import Iterator
+
+import pandas as pd
+
+from .checkpoint import atomic_write_bytes
+from .run import Run
+
+__all__ = ["BackgroundStage", "Stages", "import_recipe"]
+
+
+def import_recipe(path: str | Path, prefix: str = "trakdis_recipe_") -> ModuleType:
+    """Import the script ``path`` as a module named ``<prefix><stem>`` (recipes are scripts, not a package)."""
+    path = Path(path)
+    spec = importlib.util.spec_from_file_location(f"{prefix}{path.stem}", path)
+    if spec is None or spec.loader is None:
+        raise FileNotFoundError(f"no recipe script at {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+@dataclass
+class BackgroundStage:
+    """A stage running as a subprocess (:meth:`Stages.run` with ``background=True``)."""
+
+    proc: subprocess.Popen
+    directory: Path
+    key: str
+    started: float = field(default_factory=time.perf_counter)
+
+
+class Stages:
+    """The stages of ``run`` (the pipeline's own run, ``self.pipeline``), recipes from the directory ``recipes``; ``timings``
+    holds each stage's wall seconds under ``"<recipe>/<run_name>"`` (a background one with
+    ``" (background)"``), kept in ``timings_path`` if given."""
+
+    def __init__(self, run: Run, recipes: str | Path, *, timings_path: str | Path | None = None):
+        self.pipeline, self.recipes = run, Path(recipes)
+        self.timings_path = None if timings_path is None else Path(timings_path)
+        self.timings: dict[str, float] = {}
+        if self.timings_path is not None and self.timings_path.exists():
+            self.timings = pd.read_csv(self.timings_path).set_index("stage")["seconds"].to_dict()
+        self._modules: dict[str, ModuleType] = {}
+
+    def run(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None,
+            background: bool = False) -> Path | BackgroundStage:
+        """Run ``<recipes>/<recipe>.py`` as ``<root>/<recipe>/<run_name>`` unless its ``output`` file
+        exists; returns the run directory. With ``background``, start it as a low-priority subprocess
+        instead (its output in ``<pipeline run dir>/<run_name>.log``) and return it for :meth:`wait`."""
+        cfg = self.pipeline.cfg
+        directory = Path(cfg.root) / recipe / run_name
+        if (directory / output).exists():
+            self.pipeline.print(f"{recipe}: {directory / output} exists, skipped")
+            return directory
+        seed = cfg.seed if seed is None else seed
+        common = ["--name", run_name, "--root", cfg.root, "--seed", str(seed), "--threads", str(cfg.threads)]
+        if not cfg.progress or background:
+            common.append("--no-progress")
+        if cfg.logger != "csv":
+            common += ["--logger", cfg.logger]
+        if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv", "config.json")):
+            common.append("--resume")  # an interrupted stage continues (a recipe without a checkpoint starts over)
+        script = self.recipes / f"{recipe}.py"
+        if background:
+            log_path = self.pipeline.dir / f"{run_name}.log"
+            self.pipeline.print(f"{recipe}: {run_name} started in the background (log: {log_path})")
+            with open(log_path, "w") as log:
+                proc = subprocess.Popen([sys.executable, str(script), *common, *args], stdout=log,
+                                        stderr=subprocess.STDOUT, preexec_fn=lambda: os.nice(10))
+            return BackgroundStage(proc, directory, f"{recipe}/{run_name} (background)")
+        if recipe not in self._modules:
+            self._modules[recipe] = import_recipe(script)
+        start = time.perf_counter()
+        self._modules[recipe].main([*common, *args])
+        self._record(f"{recipe}/{run_name}", time.perf_counter() - start)
+        self.pipeline.print(f"{recipe}: done in {self.timings[f'{recipe}/{run_name}']:.0f} s ({directory})")
+        return directory
+
+    def _record(self, key: str, seconds: float) -> None:
+        self.timings[key] = seconds
+        if self.timings_path is not None:
+            frame = pd.DataFrame({"stage": list(self.timings), "seconds": list(self.timings.values())})
+            atomic_write_bytes(self.timings_path, frame.to_csv(index=False).encode())
+
+    def wait(self, job: Path | BackgroundStage) -> Path:
+        """Wait for a stage that :meth:`run` started in the background (a directory: it was skipped)
+        and return its run directory; a failed one raises, naming its log."""
+        if not isinstance(job, BackgroundStage):
+            return job
+        name = job.directory.name
+        if job.proc.wait() != 0:
+            raise RuntimeError(f"background stage {name} failed (exit code {job.proc.returncode}); "
+                               f"see {self.pipeline.dir / name}.log")
+        self._record(job.key, time.perf_counter() - job.started)
+        self.pipeline.print(f"{name}: done in the background ({job.directory})")
+        return job.directory
+
+    @staticmethod
+    @contextlib.contextmanager
+    def cleanup(job: Path | BackgroundStage) -> Iterator[None]:
+        """On leaving the block, terminate the background stage ``job`` if it still runs (an error came
+        before :meth:`wait`): nothing is left running."""
+        try:
+            yield
+        finally:
+            if isinstance(job, BackgroundStage) and job.proc.poll() is None:
+                job.proc.terminate()
+
+    def report(self) -> None:
+        """Print the pipeline's wall time and each stage's (nothing if every stage was skipped)."""
+        if self.timings:
+            stages = ", ".join(f"{k} {v:.0f}" for k, v in self.timings.items())
+            self.pipeline.print(f"wall time {time.time() - self.pipeline.t0:.0f} s; stages (s): {stages}")
