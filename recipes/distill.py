@@ -49,7 +49,7 @@ class DistillConfig(OptimConfig, RunConfig):
     buffer_capacity: int = 200  # trajectories kept for distillation
     early_windows: bool = True  # also sample windows that begin before an episode's first step (see online_dt.py)
     data: DataConfig = field(default_factory=DataConfig)  # expert dataset for --no-distill and --expert-data
-    eval_episodes: int = 10  # evaluation episodes (eval split)
+    eval_episodes: int = 10  # evaluation episodes (eval split; 0: none)
     eval_every: int = 5  # evaluate every N rounds (and before training and at the end; 0: only then)
     eval_teacher: bool = True  # also evaluate the teacher on the evaluation episodes
     num_envs: int = 2  # environments stepped together
@@ -115,12 +115,14 @@ def main(argv=None) -> dict:
 
     evals = EvalProtocol(task, horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
 
-    def evaluate(tag) -> float:  # the student, on the same eval configurations every time
+    def evaluate(tag) -> float | None:  # the student, on the same eval configurations every time
+        if not cfg.eval_episodes:
+            return None
         res = evals.run(run, student_handle, eval_env, step=state["updates"], tag=tag, keep_mode=student,
                         state_error_cm=task_spec(task).state_error_cm)
         return res.summary()["mean"]
 
-    eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
+    eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel) if cfg.eval_episodes else None
     teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder)  # its rollouts carry the estimate too
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
               "mixed": [teacher_actor_handle, student_handle]}[cfg.act] if cfg.distill and cfg.episodes_per_round else []
@@ -129,7 +131,7 @@ def main(argv=None) -> dict:
                             noise_seed=cfg.seed + 7919 + i, parallel=cfg.parallel) for i, h in enumerate(actors)]
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     with RunEnvs(None, eval_env, *roll_envs):  # closed on exit
-        if cfg.eval_teacher and state["teacher_eval"] is None:  # on its own env, closed afterwards
+        if cfg.eval_teacher and cfg.eval_episodes and state["teacher_eval"] is None:  # on its own env, closed afterwards
             state["teacher_eval"] = evals.run_snapshot(run, teacher, step=state["updates"], tag="teacher",
                                                        prefix="eval_teacher", parallel=cfg.parallel,
                                                        keep_mode=student, desc="eval (teacher)").summary()["mean"]
@@ -168,9 +170,9 @@ def main(argv=None) -> dict:
                                "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
     state.save()
     run.finish()
-    teacher = "not evaluated" if state["teacher_eval"] is None else f"{state['teacher_eval']:.3f}"
-    run.print(f"eval normalized performance: teacher {teacher}, student before {state['initial_eval']:.3f}, "
-              f"after {final:.3f} ({cfg.eval_episodes} episodes)")
+    scores = [f"{k} {'not evaluated' if state[v] is None else format(state[v], '.3f')}"
+              for k, v in (("teacher", "teacher_eval"), ("student before", "initial_eval"), ("after", "final_eval"))]
+    run.print(f"eval normalized performance: {', '.join(scores)} ({cfg.eval_episodes} episodes)")
     return dict(state)
 
 

@@ -60,7 +60,7 @@ class OnlineDTConfig(OptimConfig, RunConfig):
     offline_control: bool = False  # the online schedule without adding the rollouts to the buffer (the control)
     exploration: Literal["mean", "sample"] = "mean"  # the online rollouts' actions: the policy's mean, or samples
     eval_rtg: float | None = None  # initial return-to-go at evaluation (default: the offline data's best return)
-    eval_episodes: int = 30  # evaluation episodes (eval split; the same configurations for every evaluation)
+    eval_episodes: int = 30  # evaluation episodes (eval split, the same configurations every time; 0: none)
     eval_every: int = 0  # also evaluate every N online rounds (0: only after pretraining and at the end)
     eval_expert: bool = True  # also evaluate the scripted expert on the evaluation episodes, for comparison
     expert_episodes: int = 10  # the expert on only the first N of them (its scores vary little: std ~0.04)
@@ -126,7 +126,7 @@ def main(argv=None) -> dict:
                           target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
     evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000,
                          policy_seed=cfg.seed, collector=cfg.collector)
-    eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel)
+    eval_env = handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel) if cfg.eval_episodes else None
     explore_env = None if state["rounds"] >= cfg.online_rounds else handle.make_env(
         num_envs=cfg.num_envs, split="train", parallel=cfg.parallel, target_return=explore_rtg)
     sample = lambda: buffer.sample(cfg.batch_size).to(cfg.device)  # noqa: E731
@@ -193,7 +193,9 @@ def main(argv=None) -> dict:
         res = offline_res if cfg.online_rounds == 0 and offline_res is not None else evals.evaluate(  # no update since
             run, handle, eval_env, phases, "final teacher", step=state["updates"], tag="after online fine-tuning")
         evals.finish_pending(run, phases)  # the offline teacher's and the expert's background evaluations
-    state.update(final_eval=float(res.final_performance.mean()), final_scores=res.final_performance.tolist())
+    final = None if res is None else res.final_performance  # --eval-episodes 0: not evaluated
+    state.update(final_eval=None if final is None else float(final.mean()),
+                 final_scores=None if final is None else final.tolist())
     with phases.phase("files and curves"):  # 5. save
         handle.save(run.dir / "policy.pt", dt_cfg)
         state.save()
@@ -202,9 +204,10 @@ def main(argv=None) -> dict:
     phases.report(run.print, run.dir / "phases.json", total_wall=time.time() - run.t0, resumed=run.resuming,
                   extra={"num_envs": cfg.num_envs, "parallel": cfg.parallel})
     summary = {"expert": state["expert_eval"], "offline": state["offline_eval"], "online": state["final_eval"]}
-    line, numbers = compare_scores(summary, {"offline": state["offline_scores"], "online": res.final_performance},
+    line, numbers = compare_scores(summary, {"offline": state["offline_scores"], "online": final},
                                    before="offline", after="online")
-    run.print(f"eval normalized performance (mean +- standard error): {line}; {time.time() - run.t0:.0f} s")
+    run.print(f"eval normalized performance (mean +- standard error): {line or 'not evaluated'}; "
+              f"{time.time() - run.t0:.0f} s")
     return {**state, **summary, **numbers, "episodes_simulated": phases.episodes}
 
 

@@ -15,7 +15,8 @@
    low-priority background process from the end of stage 1 on, on the core that the encoder's and
    the student's training leave idle (``--no-background-expert``: after them); the teacher's and
    the student's on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
-   The stages' own evaluations are kept short (``TEACHER_EVAL``, ``STUDENT_EVAL``): the table has them.
+   The stages evaluate nothing themselves (``TEACHER_EVAL``, ``STUDENT_EVAL``: ``--eval-episodes 0``;
+   a stage's own ``--eval-episodes`` in its ``--*-args`` wins): the table has the evaluations.
 
 Each stage is an ordinary run of its recipe under ``<root>/<recipe>/<name>-<stage>``; a stage whose
 output file exists is skipped and an interrupted one is resumed, so ``--resume`` continues the
@@ -40,10 +41,9 @@ from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.stages import Stages
 
 RECIPES = Path(__file__).resolve().parent
-# The stages' own evaluations repeat what the table measures on --trials episodes: short ones only
-# (the teacher on 10 episodes, the student before and after distillation; the same models).
-TEACHER_EVAL = ["--eval-episodes", "10", "--no-eval-expert"]
-STUDENT_EVAL = ["--no-eval-teacher", "--eval-every", "0"]
+# The stages' own evaluations would repeat what the table measures on --trials episodes: none.
+TEACHER_EVAL = ["--eval-episodes", "0"]
+STUDENT_EVAL = ["--eval-episodes", "0"]
 
 
 @dataclass

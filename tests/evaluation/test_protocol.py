@@ -202,3 +202,14 @@ def test_run_envs_without_a_phase_timer_closes_its_envs_in_order(monkeypatch):
         envs.start_workers()
         envs.join_workers()
     assert closed == [a, b, c]
+
+
+def test_a_protocol_of_no_episodes_evaluates_nothing(tmp_path):
+    # --eval-episodes 0 (pipeline.py's stages): no episode, no job, no log row, no callback, no cache file
+    run, calls = FakeRun(), []
+    evals = EvalProtocol("ClothFold", 6, 0, 1)
+    assert evals.evaluate(run, None, None, PhaseTimer(), "final", step=1, tag="t", on_scores=calls.append) is None
+    assert evals.evaluate(run, None, None, PhaseTimer(), "bg", step=1, tag="t", background="policy.pt") is None
+    evals.expert_scores(run, None, PhaseTimer(), cache_root=tmp_path, on_scores=calls.append)
+    evals.finish_pending(run, PhaseTimer())
+    assert calls == [] and run.rows == [] and list(tmp_path.iterdir()) == []

@@ -196,7 +196,10 @@ class EvalProtocol:
         """:meth:`run` as the phase ``"evaluation (<what>)"`` of ``phases``; ``on_scores`` receives the
         per-episode scores. With ``background`` (the policy's file), the episodes run in a background
         process instead (:meth:`in_background`; returns None) and :meth:`finish_pending` logs them
-        at ``background_step`` (default: ``step``) and calls ``on_scores``."""
+        at ``background_step`` (default: ``step``) and calls ``on_scores``. A protocol of 0 episodes
+        evaluates nothing (returns None; ``on_scores`` is not called)."""
+        if self.episodes == 0:
+            return None
         if background is not None:
             job = self.in_background(background, phases)
             self._pending.append((job, what, step if background_step is None else background_step, tag, "eval", on_scores))
@@ -228,7 +231,9 @@ class EvalProtocol:
                       background: bool = False, episodes: int | None = None,
                       on_scores: Callable[[np.ndarray], Any] | None = None) -> None:
         """:meth:`expert_baseline`, its scores passed to ``on_scores``: now, or (measured in the
-        background) by :meth:`finish_pending`."""
+        background) by :meth:`finish_pending`; nothing for 0 episodes."""
+        if min(self.episodes, self.episodes if episodes is None else episodes) == 0:
+            return
         scores = self.expert_baseline(run, env, phases, cache_root=cache_root, use_cache=use_cache, background=background,
                                       episodes=episodes)
         if isinstance(scores, BackgroundEvaluation):
