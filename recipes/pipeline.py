@@ -9,9 +9,9 @@
 2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
    and those the weight-copied student visits (``--teacher``, rounds of its rollouts).
 3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data).
-4. ``recipes/evaluate.py`` for the teacher and the student on the same ``--trials`` eval-split
-   configurations (same seed), the scripted expert on the first ``--expert-trials`` of them, then
-   one Markdown table: mean, std, 25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a
+4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
+   ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
+   25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a
    low-priority background process from the end of stage 1 on, on the core that the encoder's and
    the student's training leave idle (``--no-background-expert``: after them); the teacher's and
    the student's on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
@@ -52,8 +52,7 @@ class PipelineConfig(RunConfig):
 
     task: TaskName = "ClothFold"
     """cloth task"""
-    trials: int = 100  # evaluation episodes of the teacher and the student (eval split, the same configurations)
-    expert_trials: int = 30  # the scripted expert's, the first of the same configurations (its std is ~0.05)
+    trials: int = 100  # evaluation episodes per policy (eval split, the same configurations for all three)
     teacher_args: str = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
     """extra options for recipes/online_dt.py (default: the offline teacher trained on states with
     1 cm of Gaussian noise, so that its weights act on an encoder's estimates; the arm measured
@@ -79,8 +78,8 @@ def main(argv=None) -> pd.DataFrame:
                          ["--task", cfg.task, "--collect-pixels", *mask, *TEACHER_EVAL, *shlex.split(cfg.teacher_args)])
     horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
     evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
-    expert = stages.run("evaluate", f"{name}-eval-expert", "summary.csv",
-                        ["--policy", "expert", *evaluate, "--trials", str(cfg.expert_trials)], background=cfg.background_expert)
+    expert = stages.run("evaluate", f"{name}-eval-expert", "summary.csv", ["--policy", "expert", *evaluate],
+                        background=cfg.background_expert)
     with stages.cleanup(expert):  # an error before it finished: the expert's background stage is stopped
         encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
                              ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)])

@@ -331,7 +331,7 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
                                  "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--student-rounds", 1,
                                  "--student-episodes", 2, "--student-epochs", 1]))
     student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--batch-size", 8, *DATA]))
-    args = ["--name", "pipe", "--trials", 2, "--expert-trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
+    args = ["--name", "pipe", "--trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
             f"--student-args={student}", "--threads", 1, "--mask-unseen-pickers", "--no-parallel"]
     out = run_recipe(workdir, "pipeline", *args, timeout=400)
     assert "pipe-eval-expert started in the background" in out.stdout
