@@ -28,6 +28,7 @@ over seeds with a +-1 std band) and ``timings.csv`` (wall seconds per stage).
 """
 from __future__ import annotations
 
+import functools
 import shlex
 import sys
 from dataclasses import dataclass
@@ -112,37 +113,33 @@ PRESETS = {"quick": {
 def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str, seed: int) -> dict[str, Path]:
     """All stages of one task and seed; returns ``{method: evaluation run directory}``."""
     base = f"{name}-{task}-s{seed}"
-
-    def stage(recipe: str, run_name: str, output: str, args: list[str], seed: int) -> Path:
-        return stages.run(recipe, run_name, output, args, seed=seed)
-
+    stage = functools.partial(stages.run, seed=seed)  # every stage of this task and seed
     methods = set(cfg.methods)
     needs_teacher = methods & {"teacher", "trakdis", "no_aug", "no_pretrain", "no_distill"}
     policies: dict[str, Path] = {}
     teacher = encoder = None
     if needs_teacher:
-        teacher = stage("online_dt", f"{base}-teacher", "policy.pt", ["--task", task, *shlex.split(cfg.teacher_args)], seed)
+        teacher = stage("online_dt", f"{base}-teacher", "policy.pt", ["--task", task, *shlex.split(cfg.teacher_args)])
         policies["teacher"] = teacher
     if methods & {"trakdis", "no_pretrain", "no_distill"}:
-        encoder = stage("train_encoder", f"{base}-encoder", "encoder.pt", ["--task", task, *shlex.split(cfg.encoder_args)], seed)
+        encoder = stage("train_encoder", f"{base}-encoder", "encoder.pt", ["--task", task, *shlex.split(cfg.encoder_args)])
     arms = {"trakdis": [], "no_pretrain": ["--no-weight-copy"], "no_distill": ["--no-distill"]}
     for method, flags in arms.items():
         if method in methods:
             policies[method] = stage("distill", f"{base}-{method}", "policy.pt",
                                      ["--teacher", str(teacher), "--encoder", str(encoder),
-                                      *shlex.split(cfg.student_args), *flags], seed)
+                                      *shlex.split(cfg.student_args), *flags])
     if "no_aug" in methods:
         enc_noaug = stage("train_encoder", f"{base}-encoder-noaug", "encoder.pt",
-                          ["--task", task, *shlex.split(cfg.encoder_args), "--no-aug"], seed)
+                          ["--task", task, *shlex.split(cfg.encoder_args), "--no-aug"])
         policies["no_aug"] = stage("distill", f"{base}-no_aug", "policy.pt",
-                                   ["--teacher", str(teacher), "--encoder", str(enc_noaug), *shlex.split(cfg.student_args)],
-                                   seed)
+                                   ["--teacher", str(teacher), "--encoder", str(enc_noaug), *shlex.split(cfg.student_args)])
     if "bc_image" in methods:
         policies["bc_image"] = stage("bc_image", f"{base}-bc_image", "policy.pt",
-                                     ["--task", task, *shlex.split(cfg.bc_args)], seed)
+                                     ["--task", task, *shlex.split(cfg.bc_args)])
     if "dt_image" in methods:
         policies["dt_image"] = stage("dt_image", f"{base}-dt_image", "policy.pt",
-                                     ["--task", task, *shlex.split(cfg.dt_image_args)], seed)
+                                     ["--task", task, *shlex.split(cfg.dt_image_args)])
     evals = {}
     for method in (m for m in METHODS if m in methods):
         if method == "expert":
@@ -154,7 +151,7 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str, seed:
         else:
             args = ["--policy", str(policies[method])]
         evals[method] = stage("evaluate", f"{base}-eval-{method}", "summary.csv",
-                              [*args, "--trials", str(cfg.trials), "--videos", "0"], seed)
+                              [*args, "--trials", str(cfg.trials), "--videos", "0"])
     return evals
 
 
