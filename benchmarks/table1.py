@@ -103,7 +103,7 @@ class Table1Config(RunConfig):
 PRESETS = {"quick": {
     "trials": 20,
     "teacher_args": "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0 --offline-updates 500 "
-                    "--eval-episodes 10 --no-eval-expert",
+                    "--eval-episodes 10 --expert-episodes 0",
     "encoder_args": "--epochs 5",
     "student_args": "--rounds 4 --updates-per-round 25 --eval-every 1 --eval-episodes 10 --no-eval-teacher",
     "bc_args": "--epochs 5 --eval-every 5 --eval-episodes 10",

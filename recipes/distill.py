@@ -13,19 +13,18 @@ import sys
 from dataclasses import dataclass, field
 from typing import Literal
 
-from trakdis.data import DataConfig, load_encoded_dataset, make_buffer
+from trakdis.data import DataConfig, load_encoded_dataset, student_buffer
 from trakdis.envs import task_spec
-from trakdis.evaluation import EvalProtocol, RunEnvs, run_episodes
+from trakdis.evaluation import EvalConfig, RunEnvs, run_episodes
 from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
 from trakdis.policies import load_teacher_and_encoder, weight_copied_student
-from trakdis.training import mixture_shares, run_updates
-from trakdis.transforms import ProprioceptionOverride, StateNoise, chain
+from trakdis.training import mixture_shares, train_rounds
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
-class DistillConfig(OptimConfig, RunConfig):
+class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     """Distil the privileged teacher into an image-based student."""
 
     teacher: str = "latest"  # teacher policy file or online_dt run directory ('latest': the newest under <root>)
@@ -49,11 +48,10 @@ class DistillConfig(OptimConfig, RunConfig):
     buffer_capacity: int = 200  # trajectories kept for distillation
     early_windows: bool = True  # also sample windows that begin before an episode's first step (see online_dt.py)
     data: DataConfig = field(default_factory=DataConfig)  # expert dataset for --no-distill and --expert-data
-    eval_episodes: int = 10  # evaluation episodes (eval split; 0: none)
-    eval_every: int = 5  # evaluate every N rounds (and before training and at the end; 0: only then)
+    eval_episodes: int = 10  # evaluation episodes (eval split, the same configurations every time; 0: none)
+    eval_every: int = 5  # also evaluate every N rounds (0: only before the rounds and at the end)
     eval_teacher: bool = True  # also evaluate the teacher on the evaluation episodes
-    num_envs: int = 2  # environments stepped together
-    parallel: bool = False  # step them in subprocesses (ParallelEnv)
+    parallel: bool = False  # step the envs in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)
 
     def __post_init__(self):  # checked while parsing, before the run directory exists
         if self.episodes_per_round < 0 or (self.distill and self.episodes_per_round == 0 and not self.expert_data):
@@ -85,21 +83,13 @@ def main(argv=None) -> dict:
     if cfg.distill:
         loss = DistillationLoss(student, teacher.actor, kl_coef=cfg.kl_coef, loss_function=cfg.loss_function,
                                 action_eps=dt_cfg.action_eps, teacher_context=cfg.teacher_context)
-        obs_keys = ("state", "state_estimate")
     else:
         loss = MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
-        obs_keys = ("state_estimate",)
     updater = cfg.make_updater(loss)
-    if proprio_dims:
-        obs_keys = tuple(dict.fromkeys([*obs_keys, "state"]))
-    # Sampled windows, in state units, then standardised. No-Distill: noise on the encoded expert data here (with
-    # distillation the noise is already in the rollouts' estimates); --proprio-pickers: the true picker positions.
-    noise = StateNoise(cfg.state_noise, in_keys=["state_estimate"]) if not cfg.distill and cfg.state_noise > 0 else None
-    transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
-
-    buffer = make_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, keys=obs_keys, seed=cfg.seed,
-                         transform=transform, early_windows=cfg.early_windows,
-                         relabel_return_to_go=not cfg.distill or cfg.expert_data or cfg.return_to_go == "hindsight")
+    buffer = student_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, normalizer=normalizer,
+                            distill=cfg.distill, proprio_dims=proprio_dims, state_noise=cfg.state_noise, seed=cfg.seed,
+                            early_windows=cfg.early_windows, relabel_return_to_go=not cfg.distill or cfg.expert_data
+                            or cfg.return_to_go == "hindsight")
     state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}, step_key="updates",
                      updater=updater, buffer=buffer)
     if state.resuming:
@@ -113,22 +103,19 @@ def main(argv=None) -> dict:
         buffer.load_offline(data, lengths)
         run.print(f"{'--expert-data' if cfg.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
 
-    evals = EvalProtocol(task, horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
+    evals = cfg.eval_protocol(task, horizon, seed=cfg.seed, log_returns=False)
 
     def evaluate(tag) -> float | None:  # the student, on the same eval configurations every time
-        if not cfg.eval_episodes:
-            return None
-        res = evals.run(run, student_handle, eval_env, step=state["updates"], tag=tag, keep_mode=student,
-                        state_error_cm=task_spec(task).state_error_cm)
-        return res.summary()["mean"]
+        return evals.run(run, student_handle, eval_env, step=state["updates"], tag=tag, keep_mode=student,
+                         state_error_cm=task_spec(task).state_error_cm).summary()["mean"] if cfg.eval_episodes else None
 
-    eval_env = student_handle.make_env(num_envs=cfg.num_envs, split="eval", parallel=cfg.parallel) if cfg.eval_episodes else None
+    eval_env = cfg.make_env(student_handle)
     teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder)  # its rollouts carry the estimate too
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
               "mixed": [teacher_actor_handle, student_handle]}[cfg.act] if cfg.distill and cfg.episodes_per_round else []
     # Rollouts carry both the true state and the encoder's (noisy) estimate.
-    roll_envs = [h.make_env(num_envs=cfg.num_envs, split="train", state_noise=cfg.state_noise,
-                            noise_seed=cfg.seed + 7919 + i, parallel=cfg.parallel) for i, h in enumerate(actors)]
+    roll_envs = [cfg.make_env(h, "train", state_noise=cfg.state_noise, noise_seed=cfg.seed + 7919 + i)
+                 for i, h in enumerate(actors)]
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     with RunEnvs(None, eval_env, *roll_envs):  # closed on exit
         if cfg.eval_teacher and cfg.eval_episodes and state["teacher_eval"] is None:  # on its own env, closed afterwards
@@ -137,39 +124,31 @@ def main(argv=None) -> dict:
                                                        keep_mode=student, desc="eval (teacher)").summary()["mean"]
         if state["initial_eval"] is None:
             state["initial_eval"] = evaluate("student before training")
-        while state["rounds"] < cfg.rounds:
-            rollout_metrics = {}
-            shares = ([cfg.episodes_per_round] if cfg.act != "mixed"  # --act mixed: DAgger's decaying mixture
-                      else mixture_shares(cfg.episodes_per_round, state["rounds"], cfg.rounds))
+
+        def roll_out(r: int):  # round r's rollouts into the buffer (--act mixed: DAgger's decaying mixture)
+            metrics = {}
+            shares = [cfg.episodes_per_round] if cfg.act != "mixed" else mixture_shares(cfg.episodes_per_round, r, cfg.rounds)
             for i, (handle, n) in enumerate(zip(actors, shares)):
-                if n == 0:
-                    continue
-                res = run_episodes(roll_envs[i], handle.make_policy(), n, max_steps=horizon, deterministic=True,
-                                   keep_episodes=True, desc=f"rollout ({handle.kind})",
-                                   seed=cfg.seed + 1000 * (state["rounds"] + 1) + 100 * i)
-                buffer.add_episodes(res.episodes, keys=("state", "state_estimate", "action", "return_to_go"))
-                rollout_metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
-            student.train()
-            metrics = run_updates(updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), cfg.updates_per_round,
-                                  desc=f"round {state['rounds'] + 1}")
-            state["rounds"] += 1
-            state["updates"] += cfg.updates_per_round
-            run.log(state["updates"], {**metrics, **rollout_metrics, "round": state["rounds"]})
-            key = "train/loss_distill" if cfg.distill else "train/loss_nll"
-            run.print(f"round {state['rounds']}/{cfg.rounds}: {key.split('/')[1]} {run.logger.last(key):.4f}"
-                      + "".join(f", rollout ({k.split('/')[1].split('_')[0]}) {v:.3f}" for k, v in rollout_metrics.items()))
-            if cfg.eval_every and state["rounds"] % cfg.eval_every == 0 and state["rounds"] < cfg.rounds:
-                evaluate(f"student after round {state['rounds']}")
-            if state.save_and_should_stop(cfg.rounds, key="rounds", unit="round"):
-                return dict(state)
+                if n > 0:
+                    res = run_episodes(roll_envs[i], handle.make_policy(), n, max_steps=horizon, deterministic=True,
+                                       keep_episodes=True, desc=f"rollout ({handle.kind})", collector=cfg.collector,
+                                       seed=cfg.seed + 1000 * (r + 1) + 100 * i)
+                    buffer.add_episodes(res.episodes, keys=("state", "state_estimate", "action", "return_to_go"))
+                    metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
+            return {**metrics, "round": r + 1}, ", ".join(f"rollout ({k[8:].split('_')[0]}) {v:.3f}" for k, v in metrics.items())
+
+        if not train_rounds(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
+                            rounds=cfg.rounds, updates_per_round=cfg.updates_per_round, roll_out=roll_out, model=student,
+                            loss_key="train/loss_distill" if cfg.distill else "train/loss_nll", eval_every=cfg.eval_every,
+                            evaluate=lambda r: evaluate(f"student after round {r}")):
+            return dict(state)
         # --rounds 0 (the weight copy alone): the policy did not change, its evaluation stands
         final = evaluate("student after distillation") if cfg.rounds > 0 else state["initial_eval"]
     state["final_eval"] = final
     student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
                                "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims)})
-    state.save()
-    run.finish()
+    state.finish()
     scores = [f"{k} {'not evaluated' if state[v] is None else format(state[v], '.3f')}"
               for k, v in (("teacher", "teacher_eval"), ("student before", "initial_eval"), ("after", "final_eval"))]
     run.print(f"eval normalized performance: {', '.join(scores)} ({cfg.eval_episodes} episodes)")

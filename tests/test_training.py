@@ -1,4 +1,4 @@
-"""The recipes' update loops: log, checkpoint and --stop-after cadence, a round's updates, DAgger's
+"""The recipes' update loops: log, checkpoint and --stop-after cadence, rounds of rollouts and updates, DAgger's
 mixture, epochs of minibatches and validation passes."""
 from dataclasses import dataclass
 
@@ -8,9 +8,8 @@ from tensordict import TensorDict
 
 from quadratic_loss import Quadratic
 from trakdis.optim import Updater
-from trakdis.training import (eval_batches, mixture_shares, run_updates, shuffled_batches, train_candidates,
-                              train_epoch, train_updates)
-from trakdis.utils.checkpoint import load_checkpoint, save_checkpoint
+from trakdis.training import (eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch, train_rounds,
+                              train_updates)
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -46,49 +45,40 @@ def test_cadence_stop_and_resume(tmp_path):
     assert state.objects["updater"].updates == 7
 
 
-def candidates_loop(tmp_path, *argv, candidates=3, total=4):
-    """Candidate k starts from w = (k + 1) * [1, 1] (candidate 0: the updater as built) and scores
-    -|w| after its updates, read back from the policy file it saved: the smallest w wins."""
+def rounds_loop(tmp_path, *argv, rounds=4, stop_key=None):
+    """Rounds of 2 updates; each round's "rollout" is recorded and logged, an evaluation every 2 rounds."""
     run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "a", "--no-progress", *argv])
-    updater = Updater(Quadratic(), optimizer="adam", lr=0.05)
-    state = RunState(run, {"updates": 0}, step_key="updates", updater=updater)
+    updater = Updater(Quadratic(), optimizer="adam", lr=1e-2)
+    state = RunState(run, {"updates": 0, "rounds": 0}, step_key="updates", updater=updater)
     state.load()
-    scored = []
+    rolled, evaluated = [], []
 
-    def fresh_state(k):
-        fresh = Updater(Quadratic(), optimizer="adam", lr=0.05)
-        fresh.loss_module.w.data.fill_(k + 1.0)
-        return fresh.state_dict()
+    def roll_out(r):
+        rolled.append((r, state["updates"]))
+        return {"rollout/score": float(r), "round": r + 1}, f"rollout {r}"
 
-    def score(path, k):
-        scored.append(k)
-        w = load_checkpoint(path)["w"]
-        return lambda: [-float(w.norm()), -float(w.norm())]
-
-    done = train_candidates(run, updater, TensorDict, state=state, phases=PhaseTimer(), candidates=candidates,
-                            total=total, fresh_state=fresh_state, score=score, log_every=2, checkpoint_every=2,
-                            save_policy=lambda path: save_checkpoint(path, {"w": updater.loss_module.w.detach().clone()}),
-                            log_extra={"phase": 0})
-    return run, state, done, scored
+    done = train_rounds(run, updater, TensorDict, state=state, rounds=rounds, updates_per_round=2, roll_out=roll_out,
+                        evaluate=evaluated.append, eval_every=2, log_extra={"phase": 1}, loss_key="train/loss_q",
+                        phases=PhaseTimer(), phase="round updates", stop_key=stop_key)
+    return run, state, done, rolled, evaluated
 
 
-def test_candidates_keep_the_best_score_and_resume(tmp_path):
-    run, state, done, scored = candidates_loop(tmp_path, candidates=3)
-    assert done and scored == [0, 1, 2] and state["candidate"] == 3 and state["updates"] == 12
-    assert state["candidate_kept"] == 0 and state["candidate_scores"][0] == max(state["candidate_scores"])
-    kept = load_checkpoint(run.dir / "candidates" / "policy_0.pt")["w"]
-    assert torch.equal(state.objects["updater"].loss_module.w.detach(), kept)  # the kept one, not the last
+def test_rounds_roll_out_then_update_log_evaluate_and_resume(tmp_path, capsys):
+    run, state, done, rolled, evaluated = rounds_loop(tmp_path)
+    assert done and state["rounds"] == 4 and state["updates"] == 8 and state.objects["updater"].updates == 8
+    assert rolled == [(0, 0), (1, 2), (2, 4), (3, 6)]  # each round rolls out before its updates
+    assert evaluated == [2]  # every 2 rounds, but not after the last (the recipe's final evaluation follows)
     frame = run.logger.frame()
-    assert frame["step"].tolist() == [2, 4, 6, 8, 10, 12] and frame["candidate"].tolist() == [0, 0, 1, 1, 2, 2]
-    # stopped inside candidate 1 (candidate 0's scoring lost with the process): scored again on resume
-    run, state, done, scored = candidates_loop(tmp_path / "b", "--stop-after", "6")
-    assert not done and scored == [0] and state["candidate"] == 1
-    run, state, done, scored = candidates_loop(tmp_path / "b", "--resume")
-    assert done and scored == [0, 1, 2] and state["candidate_kept"] == 0
-    assert torch.equal(state.objects["updater"].loss_module.w.detach(), kept)
-    # one candidate: train_updates, no files
-    run, state, done, scored = candidates_loop(tmp_path / "c", candidates=1)
-    assert done and scored == [] and state["updates"] == 4 and not (run.dir / "candidates").exists()
+    assert frame["step"].tolist() == [2, 4, 6, 8] and frame["round"].tolist() == [1, 2, 3, 4]
+    assert frame["rollout/score"].tolist() == [0, 1, 2, 3] and (frame["phase"] == 1).all() and "train/loss_q" in frame
+    assert "round 2/4: rollout 1, loss_q " in capsys.readouterr().out
+    # --stop-after counts rounds (or the stop_key): checkpoint after the round, then continue with --resume
+    run, state, done, rolled, _ = rounds_loop(tmp_path / "b", "--stop-after", "1")
+    assert not done and state["rounds"] == 1 and rolled == [(0, 0)]
+    run, state, done, rolled, _ = rounds_loop(tmp_path / "b", "--resume")
+    assert done and rolled == [(1, 2), (2, 4), (3, 6)] and state.objects["updater"].updates == 8
+    run, state, done, rolled, _ = rounds_loop(tmp_path / "c", "--stop-after", "4", stop_key="updates")
+    assert not done and state["updates"] == 4 and "stopping after update 4" in capsys.readouterr().out
 
 
 def test_shuffled_batches_cover_the_data_once_in_a_seeded_order():

@@ -1,7 +1,7 @@
 """The update loops of the recipes: ``updater`` steps on sampled batches until a counter reaches
 its total, with the log, checkpoint and ``--stop-after`` cadence written once
-(:func:`train_updates`), the same for several candidates from independent initialisations of which
-the best on a score is kept (:func:`train_candidates`), a round's updates (:func:`run_updates`), the
+(:func:`train_updates`), rounds of rollouts and updates (Online DT,
+DAgger: :func:`train_rounds`), a round's updates (:func:`run_updates`), the
 episodes each acting policy plays in a round of DAgger's mixture (:func:`mixture_shares`), one epoch's shuffled minibatches of a
 dataset (:func:`shuffled_batches`), one epoch of plain optimiser steps on them (:func:`train_epoch`)
 and a validation pass over a dataset in batches (:func:`eval_batches`).
@@ -13,21 +13,19 @@ and a validation pass over a dataset in batches (:func:`eval_batches`).
 """
 from __future__ import annotations
 
-from pathlib import Path
+import contextlib
 from typing import Any, Callable, Iterator, Mapping, Sequence, TypeVar
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import nn
 
 from trakdis.optim import Updater, mean_metrics
-from trakdis.utils.checkpoint import load_checkpoint, save_checkpoint
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["eval_batches", "mixture_shares", "run_updates", "shuffled_batches", "train_candidates", "train_epoch",
+__all__ = ["eval_batches", "mixture_shares", "run_updates", "shuffled_batches", "train_epoch", "train_rounds",
            "train_updates"]
 
 T = TypeVar("T")
@@ -68,61 +66,41 @@ def train_updates(run: Run, updater: Updater, sample: Callable[[], TensorDictBas
     return True
 
 
-def train_candidates(run: Run, updater: Updater, sample: Callable[[], TensorDictBase], *, state: RunState,
-                     phases: PhaseTimer, candidates: int, total: int, fresh_state: Callable[[int], Mapping[str, Any]],
-                     save_policy: Callable[[Path], Any], score: Callable[[Path, int], Callable[[], Sequence[float]]],
-                     log_every: int, checkpoint_every: int, key: str = "updates", desc: str = "offline",
-                     log_extra: Mapping[str, Any] | None = None, phase: str = "offline training") -> bool:
-    """:func:`train_updates` for ``candidates`` models in turn, each ``total`` updates from its own
-    initialisation, leaving ``updater`` with the one whose ``score`` is the highest (the first on ties).
+def train_rounds(run: Run, updater: Updater, sample: Callable[[], TensorDictBase], *, state: RunState, rounds: int,
+                 updates_per_round: int, roll_out: Callable[[int], tuple[Mapping[str, Any], str]],
+                 model: nn.Module | None = None, evaluate: Callable[[int], Any] | None = None, eval_every: int = 0,
+                 phases: PhaseTimer | None = None, phase: str = "updates", log_extra: Mapping[str, Any] | None = None,
+                 loss_key: str = "train/loss", key: str = "rounds", step_key: str = "updates",
+                 stop_key: str | None = None) -> bool:
+    """Rounds of (roll out, update), as Online DT's fine-tuning and DAgger's distillation run them,
+    until ``state[key]`` reaches ``rounds``.
 
-    Candidate 0 trains from ``updater`` as it is (with ``candidates=1`` this is :func:`train_updates`
-    inside ``phases.phase(phase)``, nothing more); candidate ``k >= 1`` from ``fresh_state(k)`` (the
-    updater's ``state_dict`` for a new initialisation: model, optimiser and schedule). Candidate ``k``'s
-    updates are counted from ``k * total`` in ``state[key]``, so that the log holds one curve per
-    candidate in turn (``log_extra`` gains ``"candidate": k``). Each finished candidate's policy file
-    (``save_policy(path)``) and updater state go to ``<run dir>/candidates/``, and ``score(path, k)``
-    starts scoring it (a background process, on the core training leaves idle) and returns a function
-    that waits for its per-episode scores. ``state`` holds ``"candidate"`` (the one in training) and
-    ``"candidate_scores"`` (one mean per candidate, None until scored); a resumed run scores again what
-    a kill left unscored. Returns False when ``--stop-after`` stopped it, True once one is kept
-    (``state["candidate_kept"]``)."""
-    if candidates < 1:
-        raise ValueError(f"candidates must be >= 1, got {candidates}")
-    if candidates == 1:
-        with phases.phase(phase):
-            return train_updates(run, updater, sample, state=state, total=total, log_every=log_every, key=key,
-                                 checkpoint_every=checkpoint_every, log_extra=log_extra, desc=desc)
-    directory = run.dir / "candidates"
-    state.setdefault("candidate", 0)
-    scores = state.setdefault("candidate_scores", [None] * candidates)
-    if len(scores) != candidates:
-        raise ValueError(f"this run was started with {len(scores)} candidates, not {candidates}")
-    waits = {k: score(directory / f"policy_{k}.pt", k) for k in range(state["candidate"]) if scores[k] is None}
-    while state["candidate"] < candidates:
-        k = state["candidate"]
-        with phases.phase(phase):
-            if not train_updates(run, updater, sample, state=state, total=(k + 1) * total, log_every=log_every, key=key,
-                                 checkpoint_every=checkpoint_every, log_extra={**(log_extra or {}), "candidate": k},
-                                 desc=f"{desc} {k + 1}/{candidates}"):
-                return False
-            directory.mkdir(exist_ok=True)
-            save_policy(directory / f"policy_{k}.pt")
-            save_checkpoint(directory / f"updater_{k}.pt", {"updater": updater.state_dict()})
-            waits[k] = score(directory / f"policy_{k}.pt", k)
-            state["candidate"] = k + 1
-            if k + 1 < candidates:
-                updater.load_state_dict(fresh_state(k + 1))
-            state.save()
-    for k, wait in sorted(waits.items()):
-        scores[k] = float(np.mean(wait()))
-    if state.get("candidate_kept") is None:
-        best = int(np.argmax(scores))
-        updater.load_state_dict(load_checkpoint(directory / f"updater_{best}.pt", required=("updater",))["updater"])
-        state["candidate_kept"] = best
-        run.print(f"kept candidate {best + 1} of {candidates} ({scores[best]:.3f}; the others "
-                  + ", ".join(f"{s:.3f}" for i, s in enumerate(scores) if i != best) + ")")
-    state.save()
+    Round ``r`` (from 0): ``roll_out(r)`` plays the round's episodes into the buffer that ``sample``
+    reads and returns ``(metrics, line)``: what to log and a text for the printed line (either may
+    be empty); then ``updates_per_round`` steps of ``updater`` (``model`` in train mode; the phase
+    ``phase`` of ``phases`` when given) advance ``state[step_key]``. Each round logs one row at
+    ``state[step_key]`` (the updates' mean ``train/*``, ``log_extra``, then ``metrics``) and prints
+    ``"round <r+1>/<rounds>: <line>, <loss_key's name> <value>"``; ``evaluate(r + 1)`` follows every
+    ``eval_every`` rounds but the last. A checkpoint after every round; ``--stop-after`` counts
+    ``state[stop_key]`` (default ``key``). Returns False when it stopped the run, True once ``rounds``
+    are done."""
+    stop_key = key if stop_key is None else stop_key
+    while state[key] < rounds:
+        metrics, line = roll_out(state[key])
+        if model is not None:
+            model.train()
+        with phases.phase(phase) if phases is not None else contextlib.nullcontext():
+            train = run_updates(updater, sample, updates_per_round, desc=f"round {state[key] + 1}")
+        state[key] += 1
+        state[step_key] += updates_per_round
+        run.log(state[step_key], {**train, **(log_extra or {}), **metrics})
+        run.print(f"round {state[key]}/{rounds}: " + ", ".join(
+            [*([line] if line else []), f"{loss_key.split('/')[-1]} {run.logger.last(loss_key):.4f}"]))
+        if evaluate is not None and eval_every and state[key] % eval_every == 0 and state[key] < rounds:
+            evaluate(state[key])
+        total = rounds if stop_key == key else state[stop_key] + (rounds - state[key]) * updates_per_round
+        if state.save_and_should_stop(total, key=stop_key, unit="round" if stop_key == key else "update"):
+            return False
     return True
 
 

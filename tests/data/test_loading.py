@@ -224,3 +224,34 @@ def test_offline_state_buffer_fits_on_a_fresh_run_and_reloads_from_the_checkpoin
     assert len(loaded) == 1  # the dataset is not read again
     assert resumed["best_return"] == state["best_return"] and torch.equal(normalizer2.loc, normalizer.loc)
     assert len(buffer2) == 3 and torch.equal(buffer2.returns, buffer.returns)
+
+
+@pytest.mark.parametrize("distill, proprio", [(True, ()), (False, ()), (False, (1,))])
+def test_student_buffer_keys_proprioception_and_noise(distill, proprio):
+    """distill.py's buffer: the estimate standardised by the teacher's normaliser; the true state beside it
+    for the teacher's labels (distillation) or the picker dims it replaces (--proprio-pickers); noise on the
+    estimate only for No-Distill (with distillation it is already in the rollouts' estimates)."""
+    import torch
+
+    from trakdis.data import student_buffer
+    from trakdis.transforms import StateNormalizer
+
+    data = _episodes(3, 4)
+    data["state_estimate"] = data["state"] + 100.0  # an encoder 100 units off in both dims
+    normalizer = StateNormalizer(torch.zeros(2), torch.full((2,), 2.0), keys=("state", "state_estimate"))
+    buffer = student_buffer(5, 2, 4, 1.0, normalizer=normalizer, distill=distill, proprio_dims=proprio,
+                            state_noise=0.5, seed=0)
+    buffer.load_offline(data.exclude("pixels", "normalized_performance") if distill or proprio
+                        else data.exclude("pixels", "normalized_performance", "state"), torch.tensor([4, 4, 4]))
+    batch = buffer.sample(64)
+    assert ("state" in batch.keys()) == bool(distill or proprio)
+    real = batch["mask"] if "mask" in batch.keys() else torch.ones(batch.shape, dtype=torch.bool)
+    off = (batch["state_estimate"] - (batch["state"] if "state" in batch.keys() else 0.0) / 1.0)[real]
+    if distill:  # exact estimate, both standardised: 50 standard units apart
+        assert torch.allclose(off, torch.full_like(off, 50.0))
+    elif proprio:  # dim 1 from the true state (noise added to the estimate before the override)
+        assert torch.allclose(off[:, 1], torch.zeros_like(off[:, 1]))
+        assert not torch.allclose(batch["state_estimate"][real][:, 0] % 0.5, torch.zeros_like(off[:, 0]))
+    else:
+        est = batch["state_estimate"][real] * 2.0 - 100.0  # back in state units: state + noise
+        assert 0.0 < (est - est.round()).abs().mean() < 0.5  # states are integers here, the noise is not

@@ -213,3 +213,23 @@ def test_a_protocol_of_no_episodes_evaluates_nothing(tmp_path):
     evals.expert_scores(run, None, PhaseTimer(), cache_root=tmp_path, on_scores=calls.append)
     evals.finish_pending(run, PhaseTimer())
     assert calls == [] and run.rows == [] and list(tmp_path.iterdir()) == []
+
+
+def test_eval_config_makes_the_protocol_and_the_envs_it_describes():
+    from trakdis.evaluation import EvalConfig
+
+    made = []
+
+    class Handle:
+        def make_env(self, **kwargs):
+            made.append(kwargs)
+            return "env"
+
+    cfg = EvalConfig(eval_episodes=5, num_envs=2, parallel=False, collector="multi_sync")
+    evals = cfg.eval_protocol("ClothFold", 7, seed=3, log_returns=False)
+    assert (evals.task, evals.horizon, evals.episodes, evals.num_envs, evals.seed) == ("ClothFold", 7, 5, 2, 10_003)
+    assert evals.collector == "multi_sync" and not evals.log_returns
+    assert cfg.make_env(Handle()) == "env" and cfg.make_env(Handle(), "train", target_return=-1.0) == "env"
+    assert made == [{"num_envs": 2, "split": "eval", "parallel": False},
+                    {"num_envs": 2, "split": "train", "parallel": False, "target_return": -1.0}]
+    assert EvalConfig(eval_episodes=0).make_env(Handle()) is None and len(made) == 2  # nothing to evaluate

@@ -106,7 +106,7 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
     trunk = list(map(str, TRUNK))
     args = ["--name", "t1", "--tasks", "ClothFold", "--seeds", "1", "--trials", "2", "--no-progress",
             "--teacher-args=" + " ".join([*h, *data, *dt, "--offline-updates", "2", "--online-rounds", "0",
-                                          "--eval-episodes", "1", "--no-eval-expert", "--log-every", "1"]),
+                                          "--eval-episodes", "1", "--expert-episodes", "0", "--log-every", "1"]),
             "--encoder-args=" + " ".join([*h, *data, "--epochs", "1", "--batch-size", "8", "--channels", "4", "4", "4", "4",
                                           "--hidden-dim", "8"]),
             "--student-args=" + " ".join([*data, "--rounds", "1", "--updates-per-round", "1", "--eval-episodes", "1",

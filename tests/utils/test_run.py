@@ -191,3 +191,17 @@ def test_finish_draws_only_the_columns_the_log_has(tmp_path):
     run.log(2, {"train/loss": 0.5})
     assert run.finish(columns=("train/loss", "eval/missing")) == run.dir / "curves.png"
     assert (run.dir / "curves.png").exists()
+
+
+def test_run_state_finish_saves_draws_and_reports_the_phases(tmp_path, capsys):
+    from trakdis.utils.run import RunState
+
+    run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "e", "--no-progress"])
+    state = RunState(run, {"updates": 3}, step_key="updates", phases_key="phases")
+    run.log(3, {"train/loss": 1.0})
+    state.finish(columns=("train/loss",), extra={"num_envs": 2})
+    assert (run.dir / "curves.png").exists() and "files and curves" in state.phases.records
+    report = json.loads((run.dir / "phases.json").read_text())
+    assert report["num_envs"] == 2 and "files and curves" in report["phases"]
+    assert torch.load(run.checkpoint_path, weights_only=False)["counters"]["updates"] == 3
+    assert "episodes simulated: 0" in capsys.readouterr().out

@@ -23,7 +23,7 @@ from .layout import (ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, encode_trajectories,
                      split_episodes_train_val, valid_mask)
 from .loading import (DataConfig, TrainValSteps, default_dataset_path, ensure_dataset, ensure_dataset_timed,
                       load_encoded_dataset, load_offline_data, load_train_val_steps, load_trajectories, make_buffer,
-                      offline_state_buffer)
+                      offline_state_buffer, student_buffer)
 
 __all__ = [
     "DATASET_FORMAT",
@@ -54,4 +54,5 @@ __all__ = [
     "load_trajectories",
     "make_buffer",
     "offline_state_buffer",
+    "student_buffer",
 ]

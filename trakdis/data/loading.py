@@ -15,7 +15,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import torch
 from tensordict import TensorDict
 
-from trakdis.transforms import OutOfViewFill, StateNoise, StateNormalizer, chain
+from trakdis.transforms import OutOfViewFill, ProprioceptionOverride, StateNoise, StateNormalizer, chain
 from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.run import RunState
 
@@ -25,7 +25,7 @@ from .layout import encode_trajectories, real_steps, split_episodes_train_val, v
 
 __all__ = ["DataConfig", "TrainValSteps", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed",
            "load_encoded_dataset", "load_offline_data", "load_train_val_steps", "load_trajectories", "make_buffer",
-           "offline_state_buffer"]
+           "offline_state_buffer", "student_buffer"]
 
 
 @dataclass
@@ -261,3 +261,21 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
     if not state.resuming:
         buffer.load_offline(trajectories, lengths)
     return buffer, normalizer
+
+
+def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: float, *, normalizer: StateNormalizer,
+                   distill: bool = True, proprio_dims: Sequence[int] = (), state_noise: float = 0.0,
+                   seed: int | None = None, early_windows: bool = False,
+                   relabel_return_to_go: bool = True) -> TrajectoryReplayBuffer:
+    """The student's replay buffer (``distill.py``): windows of the encoder's estimate
+    ``"state_estimate"`` in state units, standardised when sampled by ``normalizer`` (the teacher's,
+    of ``"state"`` and ``"state_estimate"``). With ``distill`` the windows also hold the true
+    ``"state"``, which the frozen teacher reads to label them; ``proprio_dims`` (``--proprio-pickers``):
+    the true state's values replace the estimate's there. Without ``distill`` (No-Distill: the expert's
+    actions on the encoded expert data), Gaussian noise of std ``state_noise`` goes on the estimate
+    first; with it, the noise is already in the rollouts' estimates."""
+    keys = ("state", "state_estimate") if distill or proprio_dims else ("state_estimate",)
+    noise = StateNoise(state_noise, in_keys=["state_estimate"]) if not distill and state_noise > 0 else None
+    transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
+    return make_buffer(capacity, context_len, horizon, rtg_scale, keys=keys, seed=seed, transform=transform,
+                       early_windows=early_windows, relabel_return_to_go=relabel_return_to_go)

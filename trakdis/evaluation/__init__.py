@@ -16,7 +16,7 @@ from .episodes import (
     worker_env_fns,
     write_summary_table,
 )
-from .protocol import EvalProtocol, RunEnvs, compare_scores, log_scores
+from .protocol import EvalConfig, EvalProtocol, RunEnvs, compare_scores, log_scores
 from .expert_scores import (
     ExpertScoreError,
     expert_score_key,
@@ -29,6 +29,7 @@ __all__ = [
     "COLLECTORS",
     "worker_env_fns",
     "BackgroundEvaluation",
+    "EvalConfig",
     "EvalProtocol",
     "RunEnvs",
     "compare_scores",

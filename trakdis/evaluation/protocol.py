@@ -30,18 +30,18 @@ import copy
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
 from torch import nn
 
-from trakdis.utils.phases import PhaseTimer
+from trakdis.utils.phases import PhaseTimer, available_workers
 
 from .background import BackgroundEvaluation
 from .episodes import EpisodeResults, paired_difference, run_episodes, standard_error, summarize
 from .expert_scores import expert_score_key, expert_score_path, read_expert_scores, write_expert_scores
 
-__all__ = ["EvalProtocol", "RunEnvs", "compare_scores", "log_scores"]
+__all__ = ["EvalConfig", "EvalProtocol", "RunEnvs", "compare_scores", "log_scores"]
 
 
 def log_scores(run: Any, step: int, prefix: str, tag: str, scores: Sequence[float] | np.ndarray,
@@ -276,6 +276,38 @@ class EvalProtocol:
     def _cache(run: Any, path: Path, key: dict, res: EpisodeResults) -> None:
         write_expert_scores(path, key, res.final_performance, returns=res.returns, seconds=res.seconds)
         run.print(f"scripted expert's scores cached in {path} (later runs of this configuration reuse them)")
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation and env options of a recipe that evaluates a policy and rolls episodes out (a base
+    of its config dataclass, so the flags stay ``--eval-episodes``, ``--num-envs``, ...; a recipe
+    redeclares a field to change its default)."""
+
+    eval_episodes: int = 30
+    """evaluation episodes (eval split, the same configurations every time; 0: none)"""
+    eval_every: int = 0
+    """also evaluate every N rounds (0: only before the rounds and at the end)"""
+    num_envs: int = field(default_factory=available_workers)
+    """envs stepped together, for evaluations and rollouts (default: the cores, at most 2)"""
+    parallel: bool = True
+    """step them in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)"""
+    collector: Literal["sync", "multi_sync"] = "sync"
+    """one TorchRL Collector over the batched env, or a MultiSyncCollector of --num-envs processes"""
+
+    def eval_protocol(self, task: str, horizon: int, *, seed: int, **kwargs: Any) -> EvalProtocol:
+        """The run's :class:`EvalProtocol`: these episodes, reseeded with ``seed + 10_000`` (the eval
+        configurations of every recipe run with ``--seed seed``); ``kwargs``: its other fields."""
+        return EvalProtocol(task, horizon, self.eval_episodes, self.num_envs, seed=seed + 10_000,
+                            collector=self.collector, **kwargs)
+
+    def make_env(self, handle: Any, split: str = "eval", **kwargs: Any) -> Any:
+        """``handle``'s batched env of ``split`` with these options (``kwargs``: the other arguments of
+        :meth:`~trakdis.policies.PolicyHandle.make_env`); for the eval split, None when
+        ``eval_episodes`` is 0 (nothing to evaluate)."""
+        if split == "eval" and not self.eval_episodes:
+            return None
+        return handle.make_env(num_envs=self.num_envs, split=split, parallel=self.parallel, **kwargs)
 
 
 class RunEnvs:

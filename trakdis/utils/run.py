@@ -293,6 +293,19 @@ class RunState(dict):
             self[key] = True
             self.save()
 
+    def finish(self, *, columns: Sequence[str] | None = None, extra: Mapping[str, Any] | None = None) -> None:
+        """The end of a run: :meth:`save`, then :meth:`Run.finish` (``curves.png`` of ``columns``), as
+        the phase ``"files and curves"``; with phases, their table printed and written to
+        ``phases.json`` (with ``extra``)."""
+        import contextlib
+
+        with self.phases.phase("files and curves") if self.phases is not None else contextlib.nullcontext():
+            self.save()
+            self.run.finish(columns=columns)
+        if self.phases is not None:
+            self.phases.report(self.run.print, self.run.dir / "phases.json", total_wall=time.time() - self.run.t0,
+                               resumed=self.run.resuming, extra=extra)
+
     def save_and_should_stop(self, total: int, *, key: str | None = None, unit: str | None = None) -> bool:
         """:meth:`save`, then whether the run stops here: ``--stop-after`` reached by ``self[key]``
         (default: the step key) before ``total``; a stop is announced as ``"stopping after <unit>
