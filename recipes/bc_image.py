@@ -25,7 +25,7 @@ import torch
 
 from trakdis.data import DataConfig, load_train_val_steps
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import EvalProtocol
+from trakdis.evaluation import EvalConfig
 from trakdis.modules.baselines import ImageTrunkConfig
 from trakdis.optim import OptimConfig, mean_metrics
 from trakdis.policies import PolicyHandle, save_image_policy
@@ -34,7 +34,7 @@ from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
-class BCImageConfig(OptimConfig, RunConfig):
+class BCImageConfig(EvalConfig, OptimConfig, RunConfig):
     """Behaviour cloning from images on the expert dataset (baseline BC-image)."""
 
     task: TaskName = "ClothFold"
@@ -60,13 +60,11 @@ class BCImageConfig(OptimConfig, RunConfig):
     val_fraction: float = 0.1
     """fraction of the episodes held out for validation"""
     eval_episodes: int = 20
-    """evaluation episodes (eval split)"""
+    """evaluation episodes (eval split, the same configurations every time)"""
     eval_every: int = 10
     """evaluate every N epochs (and at the end; 0: only then)"""
-    num_envs: int = 2
-    """environments stepped together"""
     parallel: bool = False
-    """step them in subprocesses (ParallelEnv)"""
+    """step the envs in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)"""
 
 
 def main(argv=None) -> dict:
@@ -95,7 +93,7 @@ def main(argv=None) -> dict:
     state.load()
     state.restore_rng()
     handle = PolicyHandle("bc_image", cfg.task, cfg.horizon, actor=head, encoder=trunk, observation_key="image_features")
-    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
+    evals = cfg.eval_protocol(cfg.task, cfg.horizon, seed=cfg.seed, log_returns=False)
 
     def evaluate() -> float:  # the current weights, on the same configurations every time
         res = evals.run_snapshot(run, handle, step=state["epoch"], tag=f"epoch {state['epoch']}", parallel=cfg.parallel,

@@ -28,7 +28,7 @@ from typing import Optional
 
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import EvalProtocol
+from trakdis.evaluation import EvalConfig
 from trakdis.modules import DTConfig
 from trakdis.modules.baselines import ImageTrunkConfig
 from trakdis.optim import OptimConfig
@@ -38,7 +38,7 @@ from trakdis.utils.run import Run, RunConfig, RunState
 
 
 @dataclass
-class DTImageConfig(OptimConfig, RunConfig):
+class DTImageConfig(EvalConfig, OptimConfig, RunConfig):
     """Decision Transformer on CNN image features, trained end to end on expert data (baseline DT-image)."""
 
     task: TaskName = "ClothFold"
@@ -66,17 +66,15 @@ class DTImageConfig(OptimConfig, RunConfig):
     eval_rtg: Optional[float] = None
     """initial return-to-go at evaluation (default: the best return of the dataset)"""
     eval_episodes: int = 20
-    """evaluation episodes (eval split)"""
+    """evaluation episodes (eval split, the same configurations every time)"""
     eval_every: int = 500
     """evaluate every N updates (and at the end; 0: only then)"""
     log_every: int = 50
     """log training metrics every N updates"""
     checkpoint_every: int = 250
     """checkpoint every N updates"""
-    num_envs: int = 2
-    """environments stepped together"""
     parallel: bool = False
-    """step them in subprocesses (ParallelEnv)"""
+    """step the envs in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)"""
 
 
 def main(argv=None) -> dict:
@@ -112,7 +110,7 @@ def main(argv=None) -> dict:
     eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else state["best_return"]
     handle = PolicyHandle("dt_image", cfg.task, cfg.horizon, actor=head, encoder=trunk, observation_key="image_features",
                           target_return=eval_rtg)
-    evals = EvalProtocol(cfg.task, cfg.horizon, cfg.eval_episodes, cfg.num_envs, seed=cfg.seed + 10_000, log_returns=False)
+    evals = cfg.eval_protocol(cfg.task, cfg.horizon, seed=cfg.seed, log_returns=False)
 
     def evaluate(u: int) -> float:  # the current weights, on the same configurations every time
         res = evals.run_snapshot(run, handle, step=u, tag=f"update {u}", parallel=cfg.parallel, keep_mode=actor)

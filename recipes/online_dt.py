@@ -68,15 +68,11 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
                 raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= {low}")
 
 
-PRESETS = {
-    "paper": {
-        "model": dict(DTConfig.PAPER_SIZES),
-        "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000, "batch_size": 256,
-        "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
-        "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
-        "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50,
-    },
-}
+PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule
+    "model": dict(DTConfig.PAPER_SIZES), "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000,
+    "batch_size": 256, "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
+    "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
+    "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50}}
 
 
 def main(argv=None) -> dict:
@@ -84,7 +80,6 @@ def main(argv=None) -> dict:
     cfg = run.cfg
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon)
-
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                               action_eps=dt_cfg.action_eps)
