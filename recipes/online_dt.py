@@ -17,12 +17,12 @@ from typing import Literal
 from trakdis.data import DataConfig, offline_state_buffer
 from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import EvalConfig, RunEnvs, compare_scores, run_episodes
+from trakdis.evaluation import EvalConfig, RunEnvs, compare_scores
 from trakdis.modules import DTConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle
-from trakdis.training import train_rounds, train_updates
+from trakdis.training import online_rollouts, train_rounds, train_updates
 from trakdis.transforms import OutOfViewFill
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -128,18 +128,13 @@ def main(argv=None) -> dict:
                               tag="after offline pretraining", on_scores=record("offline"),
                               background=run.dir / "policy_offline.pt" if background else None) is not None:
                 state.save()
-        # 4. online fine-tuning: each round rolls out (train split), adds to the buffer, updates
+        # 4. online fine-tuning: each round rolls out (train split), adds to the buffer (not the control), updates
         def roll_out(r: int):
-            with phases.phase("online rollouts", episodes=cfg.episodes_per_round, workers=cfg.num_envs):
-                res = run_episodes(explore_env, handle.make_policy(seed=cfg.seed), cfg.episodes_per_round,
-                                   max_steps=cfg.horizon, deterministic=cfg.exploration == "mean", keep_episodes=True,
-                                   desc="rollout", seed=cfg.seed + 1000 * (r + 1), collector=cfg.collector)
-            kept = buffer.add_episodes(res.episodes if not cfg.offline_control else (), keys=("state", "action"))
-            score, ret = float(res.final_performance.mean()), float(res.returns.mean())
-            return ({"online/normalized_performance": score, "online/return": ret, "online/round": r + 1,
-                     "online/kept": kept, "online/buffer_online_fraction": buffer.online_fraction},
-                    f"rollout normalized performance {score:.3f}, return {ret:.3f} ({kept} kept; buffer "
-                    f"{buffer.online_fraction:.0%} online; {res.rate()})")
+            metrics, line = online_rollouts(explore_env, handle, buffer, cfg.episodes_per_round, horizon=cfg.horizon,
+                                            seed=cfg.seed + 1000 * (r + 1), policy_seed=cfg.seed, add=not cfg.offline_control,
+                                            deterministic=cfg.exploration == "mean", collector=cfg.collector,
+                                            phases=phases, workers=cfg.num_envs)
+            return {**metrics, "online/round": r + 1}, line
 
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "

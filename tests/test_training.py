@@ -136,3 +136,39 @@ def test_train_epoch_weights_each_batch_by_its_size():
     out = train_epoch(module, optim, data, 2, loss_key="loss", metrics=("x",), desc="epoch 1")
     assert set(out) == {"x"} and out["x"] == pytest.approx(2.0)  # batches of 2, 2, 1: the mean over the 5 steps
     assert float(module.w) != 0.0  # stepped
+
+
+def test_online_rollouts_play_the_episodes_into_the_buffer_and_book_them():
+    """One Online DT round's data: the handle's episodes (seeded), added to the buffer unless the
+    control; their scores and the buffer's state for the log, one line for the printout."""
+    import sys
+    from pathlib import Path
+
+    from tensordict.nn import TensorDictModule
+
+    from trakdis.training import online_rollouts
+
+    sys.path.insert(0, str(Path(__file__).parent / "evaluation"))
+    from walk_env import Walk
+    from torchrl.envs import StepCounter, TransformedEnv
+
+    class Handle:  # a PolicyHandle's acting policy: always +0.5
+        def make_policy(self, seed=None):
+            return TensorDictModule(lambda s: torch.full_like(s, 0.5), in_keys=["state"], out_keys=["action"])
+
+    class Buffer:
+        online_fraction, added = 0.25, []
+
+        def add_episodes(self, episodes, keys):
+            self.added.append((len(list(episodes)), keys))
+            return self.added[-1][0]  # all kept
+
+    env, buffer, phases = TransformedEnv(Walk(), StepCounter()), Buffer(), PhaseTimer()
+    metrics, line = online_rollouts(env, Handle(), buffer, 3, horizon=4, seed=1, phases=phases, workers=1)
+    assert buffer.added == [(3, ("state", "action"))] and metrics["online/kept"] == 3
+    assert metrics["online/normalized_performance"] == pytest.approx(2.0)  # 4 steps of +0.5 from 0
+    assert metrics["online/return"] == pytest.approx(-(0.5 + 1.0 + 1.5 + 2.0))
+    assert metrics["online/buffer_online_fraction"] == 0.25 and phases.records["online rollouts"]["episodes"] == 3
+    assert line.startswith("rollout normalized performance 2.000, return -5.000 (3 kept; buffer 25% online; 3 episodes")
+    metrics, _ = online_rollouts(env, Handle(), buffer, 2, horizon=4, seed=1, add=False)  # the offline-only control
+    assert buffer.added[-1] == (0, ("state", "action")) and metrics["online/kept"] == 0

@@ -25,7 +25,7 @@ from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["eval_batches", "mixture_shares", "run_updates", "shuffled_batches", "train_epoch", "train_rounds",
+__all__ = ["eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches", "train_epoch", "train_rounds",
            "train_updates"]
 
 T = TypeVar("T")
@@ -102,6 +102,29 @@ def train_rounds(run: Run, updater: Updater, sample: Callable[[], TensorDictBase
         if state.save_and_should_stop(total, key=stop_key, unit="round" if stop_key == key else "update"):
             return False
     return True
+
+
+def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizon: int, seed: int,
+                    policy_seed: int | None = None, deterministic: bool = True, add: bool = True,
+                    collector: str = "sync", phases: PhaseTimer | None = None, workers: int = 1,
+                    prefix: str = "online") -> tuple[dict[str, float], str]:
+    """One round of Online DT's data collection, a :func:`train_rounds` ``roll_out``: ``episodes``
+    episodes of ``handle``'s policy (a :class:`~trakdis.policies.PolicyHandle`; mean actions if
+    ``deterministic``) in ``env`` (reseeded with ``seed``), as the phase ``"<prefix> rollouts"`` of
+    ``phases`` (on ``workers`` processes), added to ``buffer`` (a :class:`~trakdis.data.TrajectoryReplayBuffer`; ``add=False``:
+    the offline-only control). Returns the metrics to log (``<prefix>/normalized_performance``,
+    ``/return``, ``/kept``, ``/buffer_online_fraction``) and a line for the round's printout."""
+    from trakdis.evaluation import run_episodes
+
+    with phases.phase(f"{prefix} rollouts", episodes=episodes, workers=workers) if phases else contextlib.nullcontext():
+        res = run_episodes(env, handle.make_policy(seed=policy_seed), episodes, max_steps=horizon,
+                           deterministic=deterministic, keep_episodes=True, desc="rollout", seed=seed, collector=collector)
+    kept = buffer.add_episodes(res.episodes if add else (), keys=("state", "action"))
+    score, ret = float(res.final_performance.mean()), float(res.returns.mean())
+    metrics = {f"{prefix}/normalized_performance": score, f"{prefix}/return": ret, f"{prefix}/kept": kept,
+               f"{prefix}/buffer_online_fraction": buffer.online_fraction}
+    return metrics, (f"rollout normalized performance {score:.3f}, return {ret:.3f} ({kept} kept; buffer "
+                     f"{buffer.online_fraction:.0%} online; {res.rate()})")
 
 
 def run_updates(updater: Updater, sample: Callable[[], TensorDictBase], updates: int, *,
