@@ -1,10 +1,11 @@
 """The update loops of the recipes: ``updater`` steps on sampled batches until a counter reaches
 its total, with the log, checkpoint and ``--stop-after`` cadence written once
-(:func:`train_updates`), rounds of rollouts and updates (Online DT,
-DAgger: :func:`train_rounds`), a round's updates (:func:`run_updates`), the
-episodes each acting policy plays in a round of DAgger's mixture (:func:`mixture_shares`), one epoch's shuffled minibatches of a
-dataset (:func:`shuffled_batches`), one epoch of plain optimiser steps on them (:func:`train_epoch`)
-and a validation pass over a dataset in batches (:func:`eval_batches`).
+(:func:`train_updates`), rounds of rollouts and updates (Online DT, DAgger: :func:`train_rounds`),
+an Online DT round's rollouts into the replay buffer (:func:`online_rollouts`), a round's updates
+(:func:`run_updates`), the episodes each acting policy plays in a round of DAgger's mixture
+(:func:`mixture_shares`), one epoch's shuffled minibatches of a dataset (:func:`shuffled_batches`),
+one epoch of plain optimiser steps on them (:func:`train_epoch`) and a validation pass over a
+dataset in batches (:func:`eval_batches`).
 
     done = train_updates(run, updater, lambda: buffer.sample(64), state=state, total=1500,
                          log_every=50, checkpoint_every=500)
@@ -20,13 +21,14 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from trakdis.evaluation import run_episodes
 from trakdis.optim import Updater, mean_metrics
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches", "train_epoch", "train_rounds",
-           "train_updates"]
+__all__ = ["eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches", "train_epoch",
+           "train_rounds", "train_updates"]
 
 T = TypeVar("T")
 
@@ -111,12 +113,12 @@ def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizo
     """One round of Online DT's data collection, a :func:`train_rounds` ``roll_out``: ``episodes``
     episodes of ``handle``'s policy (a :class:`~trakdis.policies.PolicyHandle`; mean actions if
     ``deterministic``) in ``env`` (reseeded with ``seed``), as the phase ``"<prefix> rollouts"`` of
-    ``phases`` (on ``workers`` processes), added to ``buffer`` (a :class:`~trakdis.data.TrajectoryReplayBuffer`; ``add=False``:
-    the offline-only control). Returns the metrics to log (``<prefix>/normalized_performance``,
-    ``/return``, ``/kept``, ``/buffer_online_fraction``) and a line for the round's printout."""
-    from trakdis.evaluation import run_episodes
-
-    with phases.phase(f"{prefix} rollouts", episodes=episodes, workers=workers) if phases else contextlib.nullcontext():
+    ``phases`` (on ``workers`` processes), added to ``buffer`` (a
+    :class:`~trakdis.data.TrajectoryReplayBuffer`; ``add=False``: the offline-only control). Returns
+    the metrics to log (``<prefix>/normalized_performance``, ``/return``, ``/kept``,
+    ``/buffer_online_fraction``) and a line for the round's printout."""
+    timed = phases is not None
+    with phases.phase(f"{prefix} rollouts", episodes=episodes, workers=workers) if timed else contextlib.nullcontext():
         res = run_episodes(env, handle.make_policy(seed=policy_seed), episodes, max_steps=horizon,
                            deterministic=deterministic, keep_episodes=True, desc="rollout", seed=seed, collector=collector)
     kept = buffer.add_episodes(res.episodes if add else (), keys=("state", "action"))
