@@ -86,10 +86,9 @@ def main(argv=None) -> dict:
     updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
               f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
-    state = RunState(run, {"updates": 0, "rounds": 0, "best_return": None, "normalizer": None, "buffer_capacity":
-                           cfg.buffer_capacity, **dict.fromkeys(f"{k}_{v}" for k in ("expert", "offline", "final")
-                                                                for v in ("eval", "scores"))},
-                     step_key="updates", phases_key="phases", updater=updater)
+    scores = dict.fromkeys(f"{k}_{v}" for k in ("expert", "offline", "final") for v in ("eval", "scores"))
+    state = RunState(run, {"updates": 0, "rounds": 0, "best_return": None, "normalizer": None, **scores,
+                           "buffer_capacity": cfg.buffer_capacity}, step_key="updates", phases_key="phases", updater=updater)
     phases = state.phases
     record = lambda name: lambda s: state.update({f"{name}_eval": float(s.mean()), f"{name}_scores": s.tolist()})  # noqa: E731
     # 1. the expert data in the replay buffer. The DT reads standardised states (buffer windows and acting; noisy
@@ -129,13 +128,10 @@ def main(argv=None) -> dict:
                               background=run.dir / "policy_offline.pt" if background else None) is not None:
                 state.save()
         # 4. online fine-tuning: each round rolls out (train split), adds to the buffer (not the control), updates
-        def roll_out(r: int):
-            metrics, line = online_rollouts(explore_env, handle, buffer, cfg.episodes_per_round, horizon=cfg.horizon,
-                                            seed=cfg.seed + 1000 * (r + 1), policy_seed=cfg.seed, add=not cfg.offline_control,
-                                            deterministic=cfg.exploration == "mean", collector=cfg.collector,
-                                            phases=phases, workers=cfg.num_envs)
-            return {**metrics, "online/round": r + 1}, line
-
+        roll_out = lambda r: online_rollouts(  # noqa: E731
+            explore_env, handle, buffer, cfg.episodes_per_round, horizon=cfg.horizon, seed=cfg.seed + 1000 * (r + 1),
+            policy_seed=cfg.seed, deterministic=cfg.exploration == "mean", add=not cfg.offline_control,
+            collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1})
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")

@@ -109,13 +109,13 @@ def train_rounds(run: Run, updater: Updater, sample: Callable[[], TensorDictBase
 def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizon: int, seed: int,
                     policy_seed: int | None = None, deterministic: bool = True, add: bool = True,
                     collector: str = "sync", phases: PhaseTimer | None = None, workers: int = 1,
-                    prefix: str = "online") -> tuple[dict[str, float], str]:
+                    prefix: str = "online", extra: Mapping[str, Any] | None = None) -> tuple[dict[str, Any], str]:
     """One round of Online DT's data collection, a :func:`train_rounds` ``roll_out``: ``episodes``
     episodes of ``handle``'s policy (a :class:`~trakdis.policies.PolicyHandle`; mean actions if
     ``deterministic``) in ``env`` (reseeded with ``seed``), as the phase ``"<prefix> rollouts"`` of
     ``phases`` (on ``workers`` processes), added to ``buffer`` (a
     :class:`~trakdis.data.TrajectoryReplayBuffer`; ``add=False``: the offline-only control). Returns
-    the metrics to log (``<prefix>/normalized_performance``, ``/return``, ``/kept``,
+    the metrics to log (``<prefix>/normalized_performance``, ``/return``, ``extra``, ``/kept``,
     ``/buffer_online_fraction``) and a line for the round's printout."""
     timed = phases is not None
     with phases.phase(f"{prefix} rollouts", episodes=episodes, workers=workers) if timed else contextlib.nullcontext():
@@ -123,8 +123,8 @@ def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizo
                            deterministic=deterministic, keep_episodes=True, desc="rollout", seed=seed, collector=collector)
     kept = buffer.add_episodes(res.episodes if add else (), keys=("state", "action"))
     score, ret = float(res.final_performance.mean()), float(res.returns.mean())
-    metrics = {f"{prefix}/normalized_performance": score, f"{prefix}/return": ret, f"{prefix}/kept": kept,
-               f"{prefix}/buffer_online_fraction": buffer.online_fraction}
+    metrics = {f"{prefix}/normalized_performance": score, f"{prefix}/return": ret, **(extra or {}),
+               f"{prefix}/kept": kept, f"{prefix}/buffer_online_fraction": buffer.online_fraction}
     return metrics, (f"rollout normalized performance {score:.3f}, return {ret:.3f} ({kept} kept; buffer "
                      f"{buffer.online_fraction:.0%} online; {res.rate()})")
 
