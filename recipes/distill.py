@@ -135,7 +135,8 @@ def main(argv=None) -> dict:
                                        seed=cfg.seed + 1000 * (r + 1) + 100 * i)
                     buffer.add_episodes(res.episodes, keys=("state", "state_estimate", "action", "return_to_go"))
                     metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
-            return {**metrics, "round": r + 1}, ", ".join(f"rollout ({k[8:].split('_')[0]}) {v:.3f}" for k, v in metrics.items())
+            kinds = [k.split("/")[1].split("_")[0] for k in metrics]  # rollout/<kind>_normalized_performance
+            return {**metrics, "round": r + 1}, ", ".join(f"rollout ({k}) {v:.3f}" for k, v in zip(kinds, metrics.values()))
 
         if not train_rounds(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
                             rounds=cfg.rounds, updates_per_round=cfg.updates_per_round, roll_out=roll_out, model=student,
