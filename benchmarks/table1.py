@@ -83,7 +83,8 @@ class Table1Config(RunConfig):
     trials: int = 100
     """evaluation episodes per policy and seed (eval split)"""
     teacher_args: str = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
-    """options of recipes/online_dt.py (recipes/pipeline.py's default teacher)"""
+    """options of recipes/online_dt.py (recipes/pipeline.py's default teacher; the stage collects the images
+    for the encoder and evaluates nothing itself, unless these say otherwise)"""
     encoder_args: str = "--extra-noise 0.5"
     """options of recipes/train_encoder.py (No-Aug adds --no-aug)"""
     student_args: str = "--eval-every 2 --eval-episodes 20 --no-eval-teacher"
@@ -102,8 +103,7 @@ class Table1Config(RunConfig):
 
 PRESETS = {"quick": {
     "trials": 20,
-    "teacher_args": "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0 --offline-updates 500 "
-                    "--eval-episodes 10 --expert-episodes 0",
+    "teacher_args": "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0 --offline-updates 500",
     "encoder_args": "--epochs 5",
     "student_args": "--rounds 4 --updates-per-round 25 --eval-every 1 --eval-episodes 10 --no-eval-teacher",
     "bc_args": "--epochs 5 --eval-every 5 --eval-episodes 10",
@@ -119,7 +119,9 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str, seed:
     policies: dict[str, Path] = {}
     teacher = encoder = None
     if needs_teacher:
-        teacher = stage("online_dt", f"{base}-teacher", "policy.pt", ["--task", task, *shlex.split(cfg.teacher_args)])
+        # with the images the encoder stage reads (one collection, not two); evaluated by evaluate.py below
+        teacher = stage("online_dt", f"{base}-teacher", "policy.pt",
+                        ["--task", task, "--collect-pixels", "--eval-episodes", "0", *shlex.split(cfg.teacher_args)])
         policies["teacher"] = teacher
     if methods & {"trakdis", "no_pretrain", "no_distill"}:
         encoder = stage("train_encoder", f"{base}-encoder", "encoder.pt", ["--task", task, *shlex.split(cfg.encoder_args)])
