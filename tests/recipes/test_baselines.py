@@ -159,7 +159,7 @@ def test_table1_help_and_quick_preset(capsys):
     from trakdis.utils.config import parse_config
 
     cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--seeds", "2"], presets=bench.PRESETS)
-    assert cfg.trials == 20 and cfg.seeds == 2 and "--offline-updates" in cfg.teacher_args
+    assert cfg.trials == 20 and cfg.seeds == 2 and "--offline-updates" not in cfg.teacher_args  # the teacher as usual
     with pytest.raises(SystemExit) as exc:
         bench.main(["--help"])
     assert exc.value.code == 0 and "--seeds" in capsys.readouterr().out
