@@ -126,7 +126,7 @@ def main(argv=None) -> dict:
             state["initial_eval"] = evaluate("student before training")
 
         def roll_out(r: int):  # round r's rollouts into the buffer (--act mixed: DAgger's decaying mixture)
-            metrics = {}
+            metrics, parts = {}, []
             shares = [cfg.episodes_per_round] if cfg.act != "mixed" else mixture_shares(cfg.episodes_per_round, r, cfg.rounds)
             for i, (handle, n) in enumerate(zip(actors, shares)):
                 if n > 0:
@@ -135,8 +135,8 @@ def main(argv=None) -> dict:
                                        seed=cfg.seed + 1000 * (r + 1) + 100 * i)
                     buffer.add_episodes(res.episodes, keys=("state", "state_estimate", "action", "return_to_go"))
                     metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
-            kinds = [k.split("/")[1].split("_")[0] for k in metrics]  # rollout/<kind>_normalized_performance
-            return {**metrics, "round": r + 1}, ", ".join(f"rollout ({k}) {v:.3f}" for k, v in zip(kinds, metrics.values()))
+                    parts.append(f"rollout ({handle.kind}) {res.final_performance.mean():.3f}")
+            return {**metrics, "round": r + 1}, ", ".join(parts)
 
         if not train_rounds(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
                             rounds=cfg.rounds, updates_per_round=cfg.updates_per_round, roll_out=roll_out, model=student,

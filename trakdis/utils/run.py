@@ -26,6 +26,7 @@ continues the same event directory or W&B run.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import random
@@ -297,8 +298,6 @@ class RunState(dict):
         """The end of a run: :meth:`save`, then :meth:`Run.finish` (``curves.png`` of ``columns``), as
         the phase ``"files and curves"``; with phases, their table printed and written to
         ``phases.json`` (with ``extra``)."""
-        import contextlib
-
         with self.phases.phase("files and curves") if self.phases is not None else contextlib.nullcontext():
             self.save()
             self.run.finish(columns=columns)
