@@ -87,7 +87,7 @@ def main(argv=None) -> dict:
     spec = task_spec(cfg.task, horizon=cfg.horizon)
     path = ensure_dataset(cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=True,
                           image_size=cfg.image_size, log=run.print, progress=cfg.progress)
-    data, lengths = load_trajectories(path, keys=("pixels", "action", "reward"))
+    data, lengths = load_trajectories(path, keys=("pixels", "action", "reward"), action_labels=cfg.data.action_labels)
     trunk = cfg.trunk.make(cfg.image_size).to(cfg.device)
     dt_cfg = cfg.model.for_task(cfg.trunk.feature_dim, spec.action_dim, cfg.horizon)
     head = make_dt_actor(dt_cfg, observation_key="image_features", device=cfg.device)

@@ -2,6 +2,7 @@
 
 * :mod:`.layout`: the per-step keys of an episode, the valid-step mask, rollout -> dataset layout;
 * :mod:`.dataset`: collection and the on-disk format (memory-mapped, versioned, atomic, resumable);
+* :mod:`.labels`: the actions a policy learns (recorded, or the scripted expert's noise-free ones);
 * :mod:`.buffer`: ``TrajectoryReplayBuffer`` (left-padded windows, hindsight return-to-go);
 * :mod:`.loading`: the recipes' ``--data.*`` section, finding or collecting a dataset, loading it,
   making a buffer.
@@ -19,6 +20,7 @@ from .dataset import (
     partial_path,
     read_meta,
 )
+from .labels import ACTION_LABELS, ActionLabels, expert_labels
 from .layout import (ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, encode_trajectories, episode_to_trajectory, real_steps,
                      split_episodes_train_val, valid_mask)
 from .loading import (DataConfig, TrainValSteps, default_dataset_path, ensure_dataset, ensure_dataset_timed,
@@ -35,6 +37,9 @@ __all__ = [
     "load_expert_dataset",
     "partial_path",
     "read_meta",
+    "ACTION_LABELS",
+    "ActionLabels",
+    "expert_labels",
     "ACTING_KEYS",
     "REQUIRED_KEYS",
     "STEP_KEYS",

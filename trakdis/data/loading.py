@@ -21,6 +21,7 @@ from trakdis.utils.run import RunState
 
 from .buffer import TrajectoryReplayBuffer
 from .dataset import DatasetError, collect_expert_dataset, load_expert_dataset, partial_path, read_meta
+from .labels import ACTION_LABELS, ActionLabels, expert_labels
 from .layout import encode_trajectories, real_steps, split_episodes_train_val, valid_mask
 
 __all__ = ["DataConfig", "TrainValSteps", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed",
@@ -45,6 +46,9 @@ class DataConfig:
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together while collecting, one worker process each when > 1 (default: the
     available cores, at most 2; also the chunk size, so a dataset's episodes depend on it)"""
+    action_labels: ActionLabels = "executed"
+    """the actions a policy learns: the recorded, noisy ones (executed), or the scripted expert's
+    noise-free action at each recorded step (expert: DART's clean labels; trakdis.data.labels)"""
 
 
 def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bool, image_size: int = 32) -> Path:
@@ -125,16 +129,27 @@ def ensure_dataset_timed(cfg: DataConfig, *, phases: PhaseTimer, task: str, hori
     return dataset
 
 
-def load_trajectories(path: str | Path, keys: Sequence[str] | None = None) -> tuple[TensorDict, torch.Tensor]:
+def load_trajectories(path: str | Path, keys: Sequence[str] | None = None, *,
+                      action_labels: ActionLabels = "executed") -> tuple[TensorDict, torch.Tensor]:
     """``(steps [episodes, horizon], lengths [episodes])`` of a dataset (memory-mapped), optionally
-    restricted to ``keys``; raises a clear error naming missing keys."""
+    restricted to ``keys``; raises a clear error naming missing keys. ``action_labels="expert"``: the
+    ``"action"`` entry holds the scripted expert's noise-free actions (:func:`~trakdis.data.expert_labels`;
+    then in memory, the dataset on disk unchanged)."""
+    if action_labels not in ACTION_LABELS:
+        raise ValueError(f"action_labels must be one of {ACTION_LABELS}, got {action_labels!r}")
     steps, meta = load_expert_dataset(path)
+    labels = None
+    if action_labels == "expert" and (keys is None or "action" in keys):
+        labels = expert_labels(steps, meta, path=path)
     if keys is not None:
         missing = [k for k in keys if k not in steps.keys()]
         if missing:
             hint = " (collect it with pixels: recipes/collect.py --pixels)" if "pixels" in missing else ""
             raise KeyError(f"dataset {path} has no {missing}; it has {sorted(steps.keys())}{hint}")
         steps = steps.select(*keys)
+    if labels is not None:
+        steps = steps.to_tensordict()
+        steps.set("action", labels)
     return steps, meta["lengths"]
 
 
@@ -150,7 +165,7 @@ def load_offline_data(cfg: DataConfig, *, phases: PhaseTimer, task: str, horizon
     dataset = ensure_dataset_timed(cfg, phases=phases, task=task, horizon=horizon, seed=seed, pixels=pixels, log=log,
                                    progress=progress)
     keys = list(dict.fromkeys([*keys, "reward", "normalized_performance"]))
-    trajectories, lengths = load_trajectories(dataset, keys=keys)
+    trajectories, lengths = load_trajectories(dataset, keys=keys, action_labels=cfg.action_labels)
     trajectories = trajectories.to_tensordict()
     rets = trajectories["reward"].sum(dim=(-2, -1))
     final = trajectories["normalized_performance"][torch.arange(len(lengths)), lengths - 1]
@@ -167,7 +182,7 @@ def load_encoded_dataset(cfg: DataConfig, encoder: Callable[[torch.Tensor], torc
     through ``encoder`` as ``"state_estimate"`` beside the entries ``keys``
     (:func:`~trakdis.data.encode_trajectories`)."""
     path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, log=log, progress=progress)
-    data, lengths = load_trajectories(path, keys=("pixels", *keys))
+    data, lengths = load_trajectories(path, keys=("pixels", *keys), action_labels=cfg.action_labels)
     return encode_trajectories(data, encoder, keys=keys), lengths, path
 
 
@@ -199,13 +214,13 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     validation steps stay the main dataset's."""
     path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, image_size=image_size, log=log,
                           progress=progress)
-    data, lengths = load_trajectories(path, keys=keys)
+    data, lengths = load_trajectories(path, keys=keys, action_labels=cfg.action_labels)
     extra = []
     for noise in extra_noise:
         extra_cfg = dataclasses.replace(cfg, path=None, expert_noise=float(noise))
         extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=seed + 1, pixels=True,
                                     image_size=image_size, log=log, progress=progress)
-        extra.append((extra_path, *load_trajectories(extra_path, keys=keys)))
+        extra.append((extra_path, *load_trajectories(extra_path, keys=keys, action_labels=cfg.action_labels)))
     train_episodes, val_episodes = split_episodes_train_val(data.shape[0], val_fraction, seed=seed)
     train = real_steps(data, lengths, train_episodes)
     val = real_steps(data, lengths, val_episodes) if len(val_episodes) else None

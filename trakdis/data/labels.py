@@ -1,0 +1,58 @@
+"""The actions a policy learns from an expert dataset: the ones executed, or the scripted expert's own.
+
+The datasets are collected with Gaussian noise on the expert's picker movements (``--data.expert-noise``),
+so that they cover states off the expert's own path. The ``"action"`` they record is the *executed*,
+noisy action, and a learner fitted to it fits the noise too. The scripted expert is a function of
+the recorded ``("state", "step_count")`` alone (``trakdis.envs.expert_action``), so its noise-free
+action at every recorded step can be recomputed exactly: noisy execution, clean labels, as in DART
+(Laskey et al., "DART: Noise Injection for Robust Imitation Learning", CoRL 2017). What it does to
+the teacher is measured in docs/recipes/online_dt.md ("Clean labels").
+
+* ``"executed"``: the recorded actions (what the env received);
+* ``"expert"``: the scripted expert's noise-free action at each recorded step, in place of them.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import torch
+from tensordict import TensorDictBase
+
+from .dataset import DatasetError
+from .layout import valid_mask
+
+__all__ = ["ACTION_LABELS", "ActionLabels", "expert_labels"]
+
+ActionLabels = Literal["executed", "expert"]
+ACTION_LABELS: tuple[str, ...] = ("executed", "expert")
+
+
+def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str | Path) -> torch.Tensor:
+    """``[episodes, horizon, action_dim]``: the scripted expert's noise-free action at every recorded
+    ``"state"`` and ``"step_count"`` of ``steps`` (a dataset's ``[episodes, horizon]`` steps, ``meta``
+    its ``meta.json`` with ``"lengths"``); zero at the padding after each episode's end, as the
+    recorded actions are.
+
+    Raises :class:`~trakdis.data.DatasetError` (naming ``path``) for a dataset that this expert did not
+    collect: a custom policy, or another version of the scripted expert (its labels would differ)."""
+    from trakdis.envs.experts import EXPERT_VERSION, expert_action
+
+    config = meta.get("config", {})
+    if config.get("custom_policy", False):
+        raise DatasetError(f"{path}: collected by a custom policy, so the scripted expert cannot relabel its actions "
+                           "(use --data.action-labels executed)")
+    version = config.get("expert_version")
+    if version != EXPERT_VERSION:
+        raise DatasetError(f"{path}: collected by scripted expert version {version}, this is version {EXPERT_VERSION}; "
+                           "its actions cannot be relabelled (recollect it, or use --data.action-labels executed)")
+    missing = [k for k in ("state", "step_count", "action") if k not in steps.keys()]
+    if missing:
+        raise DatasetError(f"{path}: no {missing} to relabel the actions from; it has {sorted(steps.keys())}")
+    recorded = steps.get("action")
+    labels = torch.as_tensor(expert_action(meta["task"], steps.get("state").numpy(), steps.get("step_count").numpy()))
+    if labels.shape != recorded.shape:
+        raise DatasetError(f"{path}: the expert's actions have shape {tuple(labels.shape)}, the dataset's "
+                           f"'action' {tuple(recorded.shape)}")
+    valid = valid_mask(meta["lengths"], recorded.shape[1]).unsqueeze(-1)
+    return torch.where(valid, labels.to(recorded.dtype), torch.zeros((), dtype=recorded.dtype))
