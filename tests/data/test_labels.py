@@ -37,7 +37,7 @@ def test_expert_labels_are_the_experts_actions_on_the_recorded_steps_and_zero_pa
 @pytest.mark.parametrize("config,match", [
     ({"custom_policy": True, "expert_version": EXPERT_VERSION}, "custom policy"),
     ({"expert_version": EXPERT_VERSION - 1}, f"version {EXPERT_VERSION - 1}, this is version {EXPERT_VERSION}"),
-    ({}, f"version None, this is version {EXPERT_VERSION}"),
+    ({}, f"version 1, this is version {EXPERT_VERSION}"),  # older than the field: version 1, as ensure_dataset reads it
 ])
 def test_a_dataset_this_expert_did_not_collect_is_not_relabelled(config, match):
     steps, meta = _steps([4])

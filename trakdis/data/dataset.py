@@ -51,6 +51,7 @@ __all__ = [
     "load_expert_dataset",
     "partial_path",
     "read_meta",
+    "collected_expert_version",
 ]
 
 DATASET_FORMAT = "trakdis-dataset"
@@ -391,6 +392,12 @@ _KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 def _meta_error(meta_file: Path, key: str, problem: str) -> DatasetError:
     return DatasetError(f"load_expert_dataset: {meta_file}: {key!r} {problem}")
+
+
+def collected_expert_version(meta: dict) -> int | None:
+    """The version of the scripted expert that collected the dataset of ``meta`` (its ``meta.json``):
+    1 for datasets older than the field, None for a dataset of a custom policy."""
+    return meta.get("config", {}).get("expert_version", 1)
 
 
 def read_meta(path: str | os.PathLike) -> dict:

@@ -19,7 +19,7 @@ from typing import Any, Literal, Mapping
 import torch
 from tensordict import TensorDictBase
 
-from .dataset import DatasetError
+from .dataset import DatasetError, collected_expert_version
 from .layout import valid_mask
 
 __all__ = ["ACTION_LABELS", "ActionLabels", "expert_labels"]
@@ -38,11 +38,10 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
     collect: a custom policy, or another version of the scripted expert (its labels would differ)."""
     from trakdis.envs.experts import EXPERT_VERSION, expert_action
 
-    config = meta.get("config", {})
-    if config.get("custom_policy", False):
+    if meta.get("config", {}).get("custom_policy", False):
         raise DatasetError(f"{path}: collected by a custom policy, so the scripted expert cannot relabel its actions "
                            "(use --data.action-labels executed)")
-    version = config.get("expert_version")
+    version = collected_expert_version(meta)
     if version != EXPERT_VERSION:
         raise DatasetError(f"{path}: collected by scripted expert version {version}, this is version {EXPERT_VERSION}; "
                            "its actions cannot be relabelled (recollect it, or use --data.action-labels executed)")

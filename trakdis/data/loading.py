@@ -20,7 +20,8 @@ from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.run import RunState
 
 from .buffer import TrajectoryReplayBuffer
-from .dataset import DatasetError, collect_expert_dataset, load_expert_dataset, partial_path, read_meta
+from .dataset import (DatasetError, collect_expert_dataset, collected_expert_version, load_expert_dataset,
+                      partial_path, read_meta)
 from .labels import ACTION_LABELS, ActionLabels, expert_labels
 from .layout import encode_trajectories, real_steps, split_episodes_train_val, valid_mask
 
@@ -78,7 +79,7 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                 f"asks for --task {task} --horizon {horizon}; pass a dataset of that task and horizon (or none, "
                 f"to collect one)")
         if not cfg.path:  # a default dataset must come from the current scripted expert
-            found = meta.get("config", {}).get("expert_version", 1)
+            found = collected_expert_version(meta)
             if found != EXPERT_VERSION:
                 raise DatasetError(
                     f"{path} was collected with version {found} of the scripted expert; this trakdis has "
