@@ -15,7 +15,11 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
 * the baselines: BC-image (``bc_image.py``, ``--bc-args``) and DT-image (``dt_image.py``,
   ``--dt-image-args``);
 * ``evaluate.py`` for each of them and for the scripted expert: ``--trials`` eval-split episodes,
-  the same configurations for every method of a seed.
+  the same configurations for every method of a seed;
+* the robustness study (the paper's Fig. 7; with TraKDis, unless ``--noise-levels`` is empty): a
+  second student distilled with ``--train-noise`` of Gaussian noise on its estimated state
+  (``distill.py --state-noise``), and both students evaluated at each of ``--noise-levels``
+  (``evaluate.py --state-noise``, ``--noise-trials`` episodes per level, the same configurations).
 
 A stage whose output file exists is skipped and an interrupted one resumed, so ``--resume`` (or
 the same command again) continues where a kill stopped it. ``--methods`` picks a subset.
@@ -24,7 +28,9 @@ Writes ``<root>/table1/<name>/``: ``table1.md`` (the paper's layout, ours beside
 numbers, then per method mean +- std, 25th / 50th / 75th percentiles over all episodes of all
 seeds and the spread of the per-seed means), ``table1.csv``, ``curves_<task>.png`` (eval
 normalized performance over the distillation updates of the full method and the ablations: mean
-over seeds with a +-1 std band) and ``timings.csv`` (wall seconds per stage).
+over seeds with a +-1 std band), ``timings.csv`` (wall seconds per stage) and, with the robustness
+study, ``robustness.csv`` (per task, student and noise level: the score and its share of the
+noise-free score; also a section of ``table1.md``) and ``robustness_<task>.png``.
 """
 from __future__ import annotations
 
@@ -55,7 +61,7 @@ Method = Literal["expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug
 METHODS: tuple[str, ...] = ("expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain", "no_distill")
 LABELS = {"expert": "expert (state)", "teacher": "teacher (state)", "trakdis": "TraKDis (image)",
           "bc_image": "BC-image", "dt_image": "DT-image", "no_aug": "No-Aug", "no_pretrain": "No-Pretrain",
-          "no_distill": "No-Distill"}
+          "no_distill": "No-Distill", "trakdis_noise": "TraKDis, trained with noise"}
 CURVE_METHODS = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the paper's Fig. 6: same x axis (distill updates)
 
 # The paper's Table I (W. Chen and N. Rojas, RA-L 2024; ../shared/docs/method.md): mean and, where
@@ -93,15 +99,29 @@ class Table1Config(RunConfig):
     """options of recipes/bc_image.py"""
     dt_image_args: str = ""
     """options of recipes/dt_image.py"""
+    noise_levels: tuple[float, ...] = (0.0, 1e-5, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2)
+    """robustness study: std of the Gaussian noise on the estimated state at evaluation, in metres
+    (1e-3: 1 mm), the paper's 0 .. 1e-3 and larger ones until the score halves; none: no study"""
+    train_noise: float = 1e-3
+    """std of the noise the robust student is distilled with (metres; the paper's 1e-3)"""
+    noise_trials: int = 0
+    """evaluation episodes per noise level and student (0: --trials)"""
 
     def __post_init__(self):
-        if self.seeds < 1 or self.trials < 1:
-            raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1")
+        if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
+            raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1; "
+                             f"--noise-trials {self.noise_trials}: >= 0")
+        bad = [s for s in (*self.noise_levels, self.train_noise) if not (np.isfinite(s) and s >= 0)]
+        if bad:
+            raise ValueError(f"--noise-levels / --train-noise: every std must be finite and >= 0, got {bad[0]!r}")
+        if self.noise_levels and 0.0 not in self.noise_levels:
+            raise ValueError(f"--noise-levels {list(self.noise_levels)}: include 0 (the noise-free score "
+                             "that the others are compared with)")
         if not self.tasks or not self.methods:
             raise ValueError("--tasks and --methods need at least one value each")
 
 
-# --quick: one seed, 20 trials, short encoder/student/baseline training. The teacher keeps its 1500
+# --quick: one seed, 20 trials, short encoder/student/baseline training, no robustness study. The teacher keeps its 1500
 # offline updates: with 500 it scored 0.000 on all 20 trials (it never grasped; README, Table I).
 PRESETS = {"quick": {
     "seeds": 1,
@@ -110,10 +130,13 @@ PRESETS = {"quick": {
     "student_args": "--rounds 4 --updates-per-round 25 --eval-every 2 --eval-episodes 10 --no-eval-teacher",
     "bc_args": "--epochs 5 --eval-every 5 --eval-episodes 10",
     "dt_image_args": "--updates 300 --eval-every 150 --eval-episodes 10",
+    "noise_levels": (),  # no robustness study (add it with --noise-levels 0 1e-3 1e-2 ...)
 }}
 
-def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str, seed: int) -> dict[str, Path]:
-    """All stages of one task and seed; returns ``{method: evaluation run directory}``."""
+def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
+                  seed: int) -> tuple[dict[str, Path], dict[str, Path]]:
+    """All stages of one task and seed; returns ``{method: evaluation run directory}`` and, for the
+    robustness study, ``{student: its evaluation over the noise levels}``."""
     base = f"{name}-{task}-s{seed}"
     stage = functools.partial(stages.run, seed=seed)  # every stage of this task and seed
     methods = set(cfg.methods)
@@ -156,7 +179,18 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str, seed:
             args = ["--policy", str(policies[method])]
         evals[method] = stage("evaluate", f"{base}-eval-{method}", "summary.csv",
                               [*args, "--trials", str(cfg.trials), "--videos", "0"])
-    return evals
+    robust = {}
+    if cfg.noise_levels and "trakdis" in methods:
+        students = {"trakdis": policies["trakdis"],
+                    "trakdis_noise": stage("distill", f"{base}-trakdis_noise", "policy.pt",
+                                           ["--teacher", str(teacher), "--encoder", str(encoder),
+                                            *shlex.split(cfg.student_args), "--state-noise", str(cfg.train_noise)])}
+        levels = [str(x) for x in cfg.noise_levels]
+        for method, policy in students.items():
+            robust[method] = stage("evaluate", f"{base}-noise-{method}", "summary.csv",
+                                   ["--policy", str(policy), "--trials", str(cfg.noise_trials or cfg.trials),
+                                    "--videos", "0", "--state-noise", *levels])
+    return evals, robust
 
 
 def summarize_method(finals_per_seed: list[np.ndarray]) -> dict:
@@ -231,6 +265,51 @@ def write_curves(run: Run, cfg: Table1Config, seeds: list[int]) -> list[Path]:
     return paths
 
 
+def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], list[Path]]) -> list[Path]:
+    """The robustness study: per task, student and noise level, the score over all seeds' episodes, the
+    spread of the per-seed means and the share of the noise-free score kept (``robustness.csv``, a
+    section appended to ``table1.md``); per task a PNG of the score against the noise level."""
+    if not robust:
+        return []
+    levels = sorted(cfg.noise_levels)
+    rows, pngs, wide = [], [], []
+    for task in cfg.tasks:
+        curves = {}
+        for method in ("trakdis", "trakdis_noise"):
+            if (task, method) not in robust:
+                continue
+            episodes = [pd.read_csv(d / "episodes.csv") for d in robust[task, method]]
+            finals = [[e.loc[np.isclose(e["state_noise"], level, rtol=1e-9, atol=0), "final_normalized_performance"]
+                       .to_numpy(float) for e in episodes] for level in levels]  # levels x seeds
+            stats = [summarize_method(f) for f in finals]
+            clean = stats[levels.index(0.0)]["mean"]
+            kept = [st["mean"] / clean if clean > 0 else float("nan") for st in stats]
+            halved = next((lv for lv, k in zip(levels, kept) if k <= 0.5), None)
+            rows += [{"task": task, "method": method, "state_noise": lv, **st, "kept": k}
+                     for lv, st, k in zip(levels, stats, kept)]
+            wide.append({"task": task, "student": LABELS[method],
+                         **{f"{lv:g}": f"{st['mean']:.3f} +- {st['std']:.3f}" + (f" ({k:.0%})" if np.isfinite(k) else "")
+                            for lv, st, k in zip(levels, stats, kept)},
+                         "halves at": "-" if halved is None else f"{halved:g}"})
+            curves[LABELS[method]] = (np.arange(len(levels)), np.array([[f.mean() for f in per] for per in finals]).T)
+        if curves:
+            pngs.append(plot_mean_std(curves, run.dir / f"robustness_{task}.png", title=task,
+                                      ylabel="eval normalized performance (mean +- std over seeds)",
+                                      xlabel="std of the noise on the estimated state (m)",
+                                      xticks=[(i, f"{lv:g}") for i, lv in enumerate(levels)]))
+    atomic_write_bytes(run.dir / "robustness.csv", pd.DataFrame(rows).to_csv(index=False).encode())
+    text = ["## Robustness: Gaussian noise on the estimated state (the paper's Fig. 7)", "",
+            f"Each cell: mean +- std over all episodes of all seeds ({cfg.noise_trials or cfg.trials} per level and "
+            f"seed) and, in brackets, the share of the noise-free score kept (none when that score is <= 0); "
+            "the state is in metres (1e-3: 1 mm). "
+            f"'TraKDis, trained with noise': distilled with noise of std {cfg.train_noise:g}. "
+            "'halves at': the smallest level that keeps half of the noise-free score or less ('-': none).", "",
+            markdown_table(pd.DataFrame(wide)), ""]
+    md = run.dir / "table1.md"
+    atomic_write_bytes(md, (md.read_text() + "\n" + "\n".join(text)).encode())
+    return pngs
+
+
 def main(argv=None) -> pd.DataFrame:
     argv = list(sys.argv[1:] if argv is None else argv)
     argv = [a for x in argv for a in (("--preset", "quick") if x == "--quick" else (x,))]
@@ -239,12 +318,16 @@ def main(argv=None) -> pd.DataFrame:
     seeds = list(range(cfg.seed, cfg.seed + cfg.seeds))
     stages = Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
     evals: dict[tuple[str, str], list[Path]] = {}
+    robust: dict[tuple[str, str], list[Path]] = {}
     for task in cfg.tasks:
         for seed in seeds:
-            for method, directory in run_task_seed(stages, cfg, run.dir.name, task, seed).items():
+            done, noise = run_task_seed(stages, cfg, run.dir.name, task, seed)
+            for method, directory in done.items():
                 evals.setdefault((task, method), []).append(directory)
+            for method, directory in noise.items():
+                robust.setdefault((task, method), []).append(directory)
     write_tables(run, cfg, evals)
-    pngs = write_curves(run, cfg, seeds)
+    pngs = write_curves(run, cfg, seeds) + write_robustness(run, cfg, robust)
     run.print(f"wall time of the stages run so far: {sum(stages.timings.values()):.0f} s (timings.csv)")
     run.print(f"wrote {run.dir / 'table1.md'}" + "".join(f", {p.name}" for p in pngs))
     print((run.dir / "table1.md").read_text())

@@ -31,7 +31,7 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     encoder: str = "latest"  # encoder.pt or train_encoder run directory ('latest': the newest under <root>)
     weight_copy: bool = True  # initialise the student with the teacher's weights (--no-weight-copy: No-Pretrain)
     distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
-    state_noise: float = 0.0  # std of Gaussian noise added to the estimated state while training (robustness)
+    state_noise: float = 0.0  # std of Gaussian noise on the estimated state of every training window (robustness)
     proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
     act: Literal["student", "teacher", "mixed"] = "teacher"  # who acts in the rollouts (student: DAgger; mixed: decaying)
     teacher_context: Literal["window", "step"] = "window"  # what the teacher reads to label a step: window or step alone
@@ -113,9 +113,8 @@ def main(argv=None) -> dict:
     teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder)  # its rollouts carry the estimate too
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
               "mixed": [teacher_actor_handle, student_handle]}[cfg.act] if cfg.distill and cfg.episodes_per_round else []
-    # Rollouts carry both the true state and the encoder's (noisy) estimate.
-    roll_envs = [cfg.make_env(h, "train", state_noise=cfg.state_noise, noise_seed=cfg.seed + 7919 + i)
-                 for i, h in enumerate(actors)]
+    # Rollouts carry both the true state and the encoder's estimate (--state-noise: the buffer adds it).
+    roll_envs = [cfg.make_env(h, "train") for h in actors]
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     with RunEnvs(None, eval_env, *roll_envs):  # closed on exit
         if cfg.eval_teacher and cfg.eval_episodes and state["teacher_eval"] is None:  # on its own env, closed afterwards

@@ -114,7 +114,8 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
             "--bc-args=" + " ".join([*h, *data, *trunk, "--epochs", "1", "--batch-size", "8", "--hidden-dims", "8",
                                      "--eval-episodes", "1"]),
             "--dt-image-args=" + " ".join([*h, *data, *trunk, *dt, "--updates", "1", "--eval-episodes", "1",
-                                           "--log-every", "1"])]
+                                           "--log-every", "1"]),
+            "--noise-levels", "0", "0.001", "--noise-trials", "1"]
     try:
         bench = load_benchmark()
         frame = bench.main(args)
@@ -124,17 +125,26 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert "| ClothFold (ours) |" in md and "| ClothFold (paper) | 0.706 +- 0.159 | 0.740 +- 0.111 | 0.583 +- 0.190 |" in md
         for label in ("BC-image", "DT-image", "No-Aug", "No-Pretrain", "No-Distill", "p25", "seed_mean_std"):
             assert label in md, label
-        png = cv2.imread(str(out / "curves_ClothFold.png"))
-        assert png is not None and png.shape[0] > 100
+        for png in ("curves_ClothFold.png", "robustness_ClothFold.png"):
+            assert cv2.imread(str(out / png)) is not None, png
+        # the robustness study: both students at both noise levels, one episode each
+        robust = pd.read_csv(out / "robustness.csv")
+        assert sorted(zip(robust["method"], robust["state_noise"])) == [
+            ("trakdis", 0.0), ("trakdis", 0.001), ("trakdis_noise", 0.0), ("trakdis_noise", 0.001)]
+        assert (robust["n"] == 1).all() and np.allclose(robust.loc[robust["state_noise"] == 0, "kept"].fillna(1), 1)
+        assert "## Robustness" in md and "TraKDis, trained with noise" in md
+        noisy = json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-trakdis_noise" / "config.json").read_text())
+        assert noisy["state_noise"] == 0.001
         timings = pd.read_csv(out / "timings.csv")
-        assert len(timings) == 17  # teacher, 2 encoders, 4 distills, 2 baselines, 8 evaluations
+        # teacher, 2 encoders, 4 distills (+1 with noise), 2 baselines, 8 evaluations (+2 over the noise levels)
+        assert len(timings) == 20
         assert json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-no_pretrain" / "config.json").read_text())["weight_copy"] is False
         assert json.loads((workdir / "runs" / "train_encoder" / "t1-ClothFold-s0-encoder-noaug" / "config.json").read_text())["aug"] is False
         capsys.readouterr()
         again = bench.main(["--name", "t1", "--resume"])
         assert "run directory:" not in capsys.readouterr().out  # no stage ran again
         pd.testing.assert_frame_equal(frame, again)
-        assert len(pd.read_csv(out / "timings.csv")) == 17
+        assert len(pd.read_csv(out / "timings.csv")) == 20
     finally:
         torch.set_num_threads(torch_threads)
 
@@ -160,6 +170,12 @@ def test_table1_help_and_quick_preset(capsys):
 
     cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--seeds", "2"], presets=bench.PRESETS)
     assert cfg.trials == 20 and cfg.seeds == 2 and "--offline-updates" not in cfg.teacher_args  # the teacher as usual
+    assert cfg.noise_levels == ()  # no robustness study unless asked for
+    cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--noise-levels", "0", "1e-3"], presets=bench.PRESETS)
+    assert cfg.noise_levels == (0.0, 1e-3)
+    for bad in (["--noise-levels", "1e-3", "1e-2"], ["--noise-levels", "0", "-1"], ["--train-noise", "nan"]):
+        with pytest.raises((ValueError, SystemExit), match="noise|"):
+            parse_config(bench.Table1Config, bad, presets=bench.PRESETS)
     with pytest.raises(SystemExit) as exc:
         bench.main(["--help"])
     assert exc.value.code == 0 and "--seeds" in capsys.readouterr().out

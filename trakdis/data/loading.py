@@ -287,11 +287,15 @@ def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: flo
     ``"state_estimate"`` in state units, standardised when sampled by ``normalizer`` (the teacher's,
     of ``"state"`` and ``"state_estimate"``). With ``distill`` the windows also hold the true
     ``"state"``, which the frozen teacher reads to label them; ``proprio_dims`` (``--proprio-pickers``):
-    the true state's values replace the estimate's there. Without ``distill`` (No-Distill: the expert's
-    actions on the encoded expert data), Gaussian noise of std ``state_noise`` goes on the estimate
-    first; with it, the noise is already in the rollouts' estimates."""
+    the true state's values replace the estimate's there. ``state_noise`` > 0 (``--state-noise``, the
+    paper's robust student): Gaussian noise of that std on every sampled window's estimate, fresh at
+    each sample, before the override and the standardisation, whatever the data (the encoded expert
+    episodes or rollouts); the teacher's labels read the true state, without noise."""
     keys = ("state", "state_estimate") if distill or proprio_dims else ("state_estimate",)
-    noise = StateNoise(state_noise, in_keys=["state_estimate"]) if not distill and state_noise > 0 else None
+    # Noise here, not in the rollout envs: distillation on the encoded expert data has no rollouts,
+    # and noise added while collecting would be the same on every sample of a window.
+    noise = (StateNoise(state_noise, in_keys=["state_estimate"], seed=None if seed is None else seed + 7919)
+             if state_noise > 0 else None)
     transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
     return make_buffer(capacity, context_len, horizon, rtg_scale, keys=keys, seed=seed, transform=transform,
                        early_windows=early_windows, relabel_return_to_go=relabel_return_to_go)

@@ -160,10 +160,13 @@ def plot_mean_std(
     xlabel: str = "step",
     ylabel: str = "",
     size: tuple[int, int] = (420, 640),
+    xticks: "Sequence[tuple[float, str]] | None" = None,
 ) -> Path:
     """One panel of several curves, each a mean line with a +-1 std band: ``curves[label] = (x [T],
     values [S, T])`` (``S`` runs, e.g. seeds; NaN entries are left out of that point's mean/std).
-    The legend gives each label with its number of runs. Writes a PNG and returns its path."""
+    The legend gives each label with its number of runs. ``xticks``: ``(position, label)`` pairs
+    instead of evenly spaced numbers (e.g. noise levels 0, 1e-5, ... drawn at positions 0, 1, ...).
+    Writes a PNG and returns its path."""
     h, w = size
     img = np.full((h, w, 3), 255, np.uint8)
     left, right, top, bottom = 62, 160, 30, 40
@@ -204,10 +207,11 @@ def plot_mean_std(
             ty = int(px(x0, t)[1])
             cv2.line(img, (left, ty), (left + pw, ty), (230, 230, 230), 1)
             cv2.putText(img, _fmt(t), (4, ty + 4), _FONT, 0.35, (60, 60, 60), 1, cv2.LINE_AA)
-        for t in nice_ticks(x0, x1, 6):
+        ticks = [(t, _fmt(t)) for t in nice_ticks(x0, x1, 6)] if xticks is None else list(xticks)
+        for t, text in ticks:
             tx = int(px(t, y0)[0])
             cv2.line(img, (tx, top + ph), (tx, top + ph + 4), (0, 0, 0), 1)
-            cv2.putText(img, _fmt(t), (tx - 4 * len(_fmt(t)), top + ph + 16), _FONT, 0.35, (60, 60, 60), 1, cv2.LINE_AA)
+            cv2.putText(img, text, (tx - 4 * len(text), top + ph + 16), _FONT, 0.35, (60, 60, 60), 1, cv2.LINE_AA)
         for i, (label, (x, mean, std, n_runs)) in enumerate(stats.items()):
             color = _COLORS[i % len(_COLORS)]
             if len(x):
