@@ -50,7 +50,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
-from trakdis.evaluation import markdown_table  # noqa: E402
+from trakdis.evaluation import markdown_table, paired_difference  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
 from trakdis.utils.stages import Stages  # noqa: E402
@@ -278,19 +278,24 @@ def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], 
         for method in ("trakdis", "trakdis_noise"):
             if (task, method) not in robust:
                 continue
-            episodes = [pd.read_csv(d / "episodes.csv") for d in robust[task, method]]
+            episodes = [pd.read_csv(d / "episodes.csv").sort_values("episode") for d in robust[task, method]]
             finals = [[e.loc[np.isclose(e["state_noise"], level, rtol=1e-9, atol=0), "final_normalized_performance"]
                        .to_numpy(float) for e in episodes] for level in levels]  # levels x seeds
             stats = [summarize_method(f) for f in finals]
             clean = stats[levels.index(0.0)]["mean"]
             kept = [st["mean"] / clean if clean > 0 else float("nan") for st in stats]
+            # the same configurations at every level: the change from the noise-free score, episode by episode
+            paired = [paired_difference(np.concatenate(finals[levels.index(0.0)]), np.concatenate(f)) for f in finals]
             halved = next((lv for lv, k in zip(levels, kept) if k <= 0.5), None)
-            rows += [{"task": task, "method": method, "state_noise": lv, **st, "kept": k}
-                     for lv, st, k in zip(levels, stats, kept)]
+            rows += [{"task": task, "method": method, "state_noise": lv, **st, "kept": k, "change": d, "change_se": se}
+                     for lv, st, k, (d, se) in zip(levels, stats, kept, paired)]
+            at = levels.index(cfg.train_noise) if cfg.train_noise in levels else None
             wide.append({"task": task, "student": LABELS[method],
                          **{f"{lv:g}": f"{st['mean']:.3f} +- {st['std']:.3f}" + (f" ({k:.0%})" if np.isfinite(k) else "")
                             for lv, st, k in zip(levels, stats, kept)},
-                         "halves at": "-" if halved is None else f"{halved:g}"})
+                         "halves at": "-" if halved is None else f"{halved:g}",
+                         **({f"change at {cfg.train_noise:g} (paired)": f"{paired[at][0]:+.3f} +- {paired[at][1]:.3f}"}
+                            if at is not None else {})})
             curves[LABELS[method]] = (np.arange(len(levels)), np.array([[f.mean() for f in per] for per in finals]).T)
         if curves:
             pngs.append(plot_mean_std(curves, run.dir / f"robustness_{task}.png", title=task,
@@ -303,7 +308,9 @@ def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], 
             f"seed) and, in brackets, the share of the noise-free score kept (none when that score is <= 0); "
             "the state is in metres (1e-3: 1 mm). "
             f"'TraKDis, trained with noise': distilled with noise of std {cfg.train_noise:g}. "
-            "'halves at': the smallest level that keeps half of the noise-free score or less ('-': none).", "",
+            "'halves at': the smallest level that keeps half of the noise-free score or less ('-': none); "
+            "'change (paired)': the score at that level minus the noise-free one on the same configurations, "
+            "mean +- standard error over episodes.", "",
             markdown_table(pd.DataFrame(wide)), ""]
     md = run.dir / "table1.md"
     atomic_write_bytes(md, (md.read_text() + "\n" + "\n".join(text)).encode())

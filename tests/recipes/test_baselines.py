@@ -132,6 +132,9 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert sorted(zip(robust["method"], robust["state_noise"])) == [
             ("trakdis", 0.0), ("trakdis", 0.001), ("trakdis_noise", 0.0), ("trakdis_noise", 0.001)]
         assert (robust["n"] == 1).all() and np.allclose(robust.loc[robust["state_noise"] == 0, "kept"].fillna(1), 1)
+        clean = robust[robust["state_noise"] == 0].set_index("method")["mean"]
+        assert np.allclose(robust["change"], robust["mean"] - robust["method"].map(clean))  # one episode: its own change
+        assert "change at 0.001 (paired)" in md
         assert "## Robustness" in md and "TraKDis, trained with noise" in md
         noisy = json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-trakdis_noise" / "config.json").read_text())
         assert noisy["state_noise"] == 0.001
