@@ -106,6 +106,9 @@ class Table1Config(RunConfig):
     """std of the noise the robust student is distilled with (metres; the paper's 1e-3)"""
     noise_trials: int = 0
     """evaluation episodes per noise level and student (0: --trials)"""
+    parallel: bool = True
+    """evaluations (the table's, the robustness study's and the students' curves) on 2 worker processes
+    (--no-parallel: in turn; the same numbers)"""
 
     def __post_init__(self):
         if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
@@ -128,8 +131,8 @@ PRESETS = {"quick": {
     "trials": 20,
     "encoder_args": "--epochs 5",
     "student_args": "--rounds 4 --updates-per-round 25 --eval-every 2 --eval-episodes 10 --no-eval-teacher",
-    "bc_args": "--epochs 5 --eval-every 5 --eval-episodes 10",
-    "dt_image_args": "--updates 300 --eval-every 150 --eval-episodes 10",
+    "bc_args": "--epochs 5",
+    "dt_image_args": "--updates 300",
     "noise_levels": (),  # no robustness study (add it with --noise-levels 0 1e-3 1e-2 ...)
 }}
 
@@ -139,6 +142,8 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     robustness study, ``{student: its evaluation over the noise levels}``."""
     base = f"{name}-{task}-s{seed}"
     stage = functools.partial(stages.run, seed=seed)  # every stage of this task and seed
+    parallel = ["--parallel"] if cfg.parallel else ["--no-parallel"]
+    student_args = [*parallel, *shlex.split(cfg.student_args)]  # the curves' evaluations
     methods = set(cfg.methods)
     needs_teacher = methods & {"teacher", "trakdis", "no_aug", "no_pretrain", "no_distill"}
     policies: dict[str, Path] = {}
@@ -155,18 +160,19 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
         if method in methods:
             policies[method] = stage("distill", f"{base}-{method}", "policy.pt",
                                      ["--teacher", str(teacher), "--encoder", str(encoder),
-                                      *shlex.split(cfg.student_args), *flags])
+                                      *student_args, *flags])
     if "no_aug" in methods:
         enc_noaug = stage("train_encoder", f"{base}-encoder-noaug", "encoder.pt",
                           ["--task", task, *shlex.split(cfg.encoder_args), "--no-aug"])
         policies["no_aug"] = stage("distill", f"{base}-no_aug", "policy.pt",
-                                   ["--teacher", str(teacher), "--encoder", str(enc_noaug), *shlex.split(cfg.student_args)])
+                                   ["--teacher", str(teacher), "--encoder", str(enc_noaug), *student_args])
+    # the baselines evaluate nothing themselves: evaluate.py below does (their --*-args may say otherwise)
     if "bc_image" in methods:
         policies["bc_image"] = stage("bc_image", f"{base}-bc_image", "policy.pt",
-                                     ["--task", task, *shlex.split(cfg.bc_args)])
+                                     ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.bc_args)])
     if "dt_image" in methods:
         policies["dt_image"] = stage("dt_image", f"{base}-dt_image", "policy.pt",
-                                     ["--task", task, *shlex.split(cfg.dt_image_args)])
+                                     ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.dt_image_args)])
     evals = {}
     for method in (m for m in METHODS if m in methods):
         if method == "expert":
@@ -178,18 +184,18 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
         else:
             args = ["--policy", str(policies[method])]
         evals[method] = stage("evaluate", f"{base}-eval-{method}", "summary.csv",
-                              [*args, "--trials", str(cfg.trials), "--videos", "0"])
+                              [*args, "--trials", str(cfg.trials), "--videos", "0", *parallel])
     robust = {}
     if cfg.noise_levels and "trakdis" in methods:
         students = {"trakdis": policies["trakdis"],
                     "trakdis_noise": stage("distill", f"{base}-trakdis_noise", "policy.pt",
                                            ["--teacher", str(teacher), "--encoder", str(encoder),
-                                            *shlex.split(cfg.student_args), "--state-noise", str(cfg.train_noise)])}
+                                            *student_args, "--state-noise", str(cfg.train_noise)])}
         levels = [str(x) for x in cfg.noise_levels]
         for method, policy in students.items():
             robust[method] = stage("evaluate", f"{base}-noise-{method}", "summary.csv",
                                    ["--policy", str(policy), "--trials", str(cfg.noise_trials or cfg.trials),
-                                    "--videos", "0", "--state-noise", *levels])
+                                    "--videos", "0", *parallel, "--state-noise", *levels])
     return evals, robust
 
 

@@ -60,7 +60,7 @@ class BCImageConfig(EvalConfig, OptimConfig, RunConfig):
     val_fraction: float = 0.1
     """fraction of the episodes held out for validation"""
     eval_episodes: int = 20
-    """evaluation episodes (eval split, the same configurations every time)"""
+    """evaluation episodes (eval split, the same configurations every time; 0: none)"""
     eval_every: int = 10
     """evaluate every N epochs (and at the end; 0: only then)"""
     parallel: bool = False
@@ -95,7 +95,9 @@ def main(argv=None) -> dict:
     handle = PolicyHandle("bc_image", cfg.task, cfg.horizon, actor=head, encoder=trunk, observation_key="image_features")
     evals = cfg.eval_protocol(cfg.task, cfg.horizon, seed=cfg.seed, log_returns=False)
 
-    def evaluate() -> float:  # the current weights, on the same configurations every time
+    def evaluate() -> float | None:  # the current weights, on the same configurations every time (0 episodes: none)
+        if not cfg.eval_episodes:
+            return None
         res = evals.run_snapshot(run, handle, step=state["epoch"], tag=f"epoch {state['epoch']}", parallel=cfg.parallel,
                                  keep_mode=actor)
         return res.summary()["mean"]
@@ -117,13 +119,14 @@ def main(argv=None) -> dict:
             evaluate()
         if state.save_and_should_stop(cfg.epochs, unit="epoch"):
             return dict(state)
-    if state["final_eval"] is None:
+    if state["final_eval"] is None and cfg.eval_episodes:
         state["final_eval"] = evaluate()
     save_image_policy(run.dir / "policy.pt", kind="bc_image", task=cfg.task, horizon=cfg.horizon, trunk=trunk,
                       actor=head, head_config=bc_cfg, extra={"dataset": str(path), "epochs": state["epoch"]})
     state.save()
     run.finish()
-    run.print(f"BC-image: eval normalized performance {state['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
+    if state["final_eval"] is not None:
+        run.print(f"BC-image: eval normalized performance {state['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
     return dict(state)
 
 

@@ -66,7 +66,7 @@ class DTImageConfig(EvalConfig, OptimConfig, RunConfig):
     eval_rtg: Optional[float] = None
     """initial return-to-go at evaluation (default: the best return of the dataset)"""
     eval_episodes: int = 20
-    """evaluation episodes (eval split, the same configurations every time)"""
+    """evaluation episodes (eval split, the same configurations every time; 0: none)"""
     eval_every: int = 500
     """evaluate every N updates (and at the end; 0: only then)"""
     log_every: int = 50
@@ -112,7 +112,9 @@ def main(argv=None) -> dict:
                           target_return=eval_rtg)
     evals = cfg.eval_protocol(cfg.task, cfg.horizon, seed=cfg.seed, log_returns=False)
 
-    def evaluate(u: int) -> float:  # the current weights, on the same configurations every time
+    def evaluate(u: int) -> float | None:  # the current weights, on the same configurations every time (0: none)
+        if not cfg.eval_episodes:
+            return None
         res = evals.run_snapshot(run, handle, step=u, tag=f"update {u}", parallel=cfg.parallel, keep_mode=actor)
         return res.summary()["mean"]
 
@@ -122,14 +124,15 @@ def main(argv=None) -> dict:
                                                     f"{run.logger.last('train/loss_nll'):.3f}"),
                          on_update=lambda u: evaluate(u) if cfg.eval_every and u % cfg.eval_every == 0 and u < cfg.updates else None):
         return dict(state)
-    if state["final_eval"] is None:
+    if state["final_eval"] is None and cfg.eval_episodes:
         state["final_eval"] = evaluate(state["updates"])
     save_image_policy(run.dir / "policy.pt", kind="dt_image", task=cfg.task, horizon=cfg.horizon, trunk=trunk,
                       actor=head, head_config=dt_cfg, target_return=eval_rtg,
                       extra={"dataset": str(path), "updates": state["updates"]})
     state.save()
     run.finish()
-    run.print(f"DT-image: eval normalized performance {state['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
+    if state["final_eval"] is not None:
+        run.print(f"DT-image: eval normalized performance {state['final_eval']:.3f} ({cfg.eval_episodes} episodes)")
     return dict(state)
 
 

@@ -111,11 +111,9 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
                                           "--hidden-dim", "8"]),
             "--student-args=" + " ".join([*data, "--rounds", "1", "--updates-per-round", "1", "--eval-episodes", "1",
                                           "--eval-every", "1", "--batch-size", "4", "--no-eval-teacher"]),
-            "--bc-args=" + " ".join([*h, *data, *trunk, "--epochs", "1", "--batch-size", "8", "--hidden-dims", "8",
-                                     "--eval-episodes", "1"]),
-            "--dt-image-args=" + " ".join([*h, *data, *trunk, *dt, "--updates", "1", "--eval-episodes", "1",
-                                           "--log-every", "1"]),
-            "--noise-levels", "0", "0.001", "--noise-trials", "1"]
+            "--bc-args=" + " ".join([*h, *data, *trunk, "--epochs", "1", "--batch-size", "8", "--hidden-dims", "8"]),
+            "--dt-image-args=" + " ".join([*h, *data, *trunk, *dt, "--updates", "1", "--log-every", "1"]),
+            "--noise-levels", "0", "0.001", "--noise-trials", "1", "--no-parallel"]  # workers: see the test below
     try:
         bench = load_benchmark()
         frame = bench.main(args)
@@ -142,6 +140,11 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         # teacher, 2 encoders, 4 distills (+1 with noise), 2 baselines, 8 evaluations (+2 over the noise levels)
         assert len(timings) == 20
         assert json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-no_pretrain" / "config.json").read_text())["weight_copy"] is False
+        for baseline in ("bc_image", "dt_image"):  # evaluated by evaluate.py only, on 2 workers like the others
+            log = pd.read_csv(workdir / "runs" / baseline / f"t1-ClothFold-s0-{baseline}" / "log.csv")
+            assert "eval/normalized_performance" not in log.columns, baseline
+            ev = json.loads((workdir / "runs" / "evaluate" / f"t1-ClothFold-s0-eval-{baseline}" / "config.json").read_text())
+            assert ev["parallel"] is False, baseline
         assert json.loads((workdir / "runs" / "train_encoder" / "t1-ClothFold-s0-encoder-noaug" / "config.json").read_text())["aug"] is False
         capsys.readouterr()
         again = bench.main(["--name", "t1", "--resume"])
@@ -165,6 +168,47 @@ def test_help(recipe, flags, capsys):
     out = capsys.readouterr().out
     for flag in flags:
         assert flag in out, flag
+
+
+def test_table1_stages_and_their_options():
+    """Which stages one task and seed runs, with which options (recorded, nothing run): every evaluation
+    and every student's curve on 2 workers by default, the baselines evaluated by evaluate.py only,
+    the robust student distilled with --train-noise and both students evaluated at every noise level."""
+    bench = load_benchmark()
+    from trakdis.utils.config import parse_config
+
+    class Recorder:
+        def __init__(self):
+            self.calls = {}
+
+        def run(self, recipe, run_name, output, args, *, seed=None):
+            self.calls[run_name] = (recipe, list(args), seed)
+            return Path("runs") / recipe / run_name
+
+    methods = [m for m in bench.METHODS if m != "expert"]  # the expert's stage reads the teacher's file
+    cfg = parse_config(bench.Table1Config, ["--noise-levels", "0", "1e-3", "--noise-trials", "7", "--methods", *methods])
+    stages = Recorder()
+    evals, robust = bench.run_task_seed(stages, cfg, "t", "ClothFold", 3)
+    assert set(evals) == set(methods) and set(robust) == {"trakdis", "trakdis_noise"}
+    calls = stages.calls
+    assert {seed for _, _, seed in calls.values()} == {3}
+    evaluations = [args for recipe, args, _ in calls.values() if recipe == "evaluate"]
+    assert len(evaluations) == 9 and all("--parallel" in a for a in evaluations)
+    students = {name: args for name, (recipe, args, _) in calls.items() if recipe == "distill"}
+    assert len(students) == 5 and all("--parallel" in a for a in students.values())
+    noisy = students["t-ClothFold-s3-trakdis_noise"]
+    assert noisy[noisy.index("--state-noise") + 1] == "0.001" and "--state-noise" not in students["t-ClothFold-s3-trakdis"]
+    for name in ("t-ClothFold-s3-bc_image", "t-ClothFold-s3-dt_image"):
+        args = calls[name][1]
+        assert args[args.index("--eval-episodes") + 1] == "0", name
+    robust_eval = calls["t-ClothFold-s3-noise-trakdis_noise"][1]
+    assert robust_eval[robust_eval.index("--state-noise") + 1:] == ["0.0", "0.001"]
+    assert robust_eval[robust_eval.index("--trials") + 1] == "7"
+    stages = Recorder()
+    bench.run_task_seed(stages, parse_config(bench.Table1Config, ["--no-parallel", "--noise-levels", "--methods", *methods]),
+                        "t", "ClothFold", 0)
+    assert not any("--parallel" in args for _, args, _ in stages.calls.values())
+    assert not any("noise" in name for name in stages.calls)  # no robustness study
 
 
 def test_table1_help_and_quick_preset(capsys):
