@@ -61,7 +61,7 @@ Method = Literal["expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug
 METHODS: tuple[str, ...] = ("expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain", "no_distill")
 LABELS = {"expert": "expert (state)", "teacher": "teacher (state)", "trakdis": "TraKDis (image)",
           "bc_image": "BC-image", "dt_image": "DT-image", "no_aug": "No-Aug", "no_pretrain": "No-Pretrain",
-          "no_distill": "No-Distill", "trakdis_noise": "TraKDis, trained with noise"}
+          "no_distill": "No-Distill", "trakdis_noise": "TraKDis+noise"}
 CURVE_METHODS = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the paper's Fig. 6: same x axis (distill updates)
 
 # The paper's Table I (W. Chen and N. Rojas, RA-L 2024; ../shared/docs/method.md): mean and, where
@@ -99,7 +99,7 @@ class Table1Config(RunConfig):
     """options of recipes/bc_image.py"""
     dt_image_args: str = ""
     """options of recipes/dt_image.py"""
-    noise_levels: tuple[float, ...] = (0.0, 1e-5, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2)
+    noise_levels: tuple[float, ...] = (0.0, 1e-5, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
     """robustness study: std of the Gaussian noise on the estimated state at evaluation, in metres
     (1e-3: 1 mm), the paper's 0 .. 1e-3 and larger ones until the score halves; none: no study"""
     train_noise: float = 1e-3
@@ -284,9 +284,17 @@ def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], 
         for method in ("trakdis", "trakdis_noise"):
             if (task, method) not in robust:
                 continue
-            episodes = [pd.read_csv(d / "episodes.csv").sort_values("episode") for d in robust[task, method]]
-            finals = [[e.loc[np.isclose(e["state_noise"], level, rtol=1e-9, atol=0), "final_normalized_performance"]
-                       .to_numpy(float) for e in episodes] for level in levels]  # levels x seeds
+            episodes = {d: pd.read_csv(d / "episodes.csv").sort_values("episode") for d in robust[task, method]}
+            finals = []  # levels x seeds
+            for level in levels:
+                finals.append([])
+                for d, e in episodes.items():
+                    at = e.loc[np.isclose(e["state_noise"], level, rtol=1e-9, atol=0), "final_normalized_performance"]
+                    if at.empty:  # a finished stage of an earlier configuration (--resume with other levels)
+                        raise ValueError(f"{d / 'episodes.csv'} has no episode at state noise {level:g} (its levels: "
+                                         f"{sorted(e['state_noise'].unique())}): run with the levels it was made with, "
+                                         f"or under a new --name")
+                    finals[-1].append(at.to_numpy(float))
             stats = [summarize_method(f) for f in finals]
             clean = stats[levels.index(0.0)]["mean"]
             kept = [st["mean"] / clean if clean > 0 else float("nan") for st in stats]
@@ -313,7 +321,7 @@ def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], 
             f"Each cell: mean +- std over all episodes of all seeds ({cfg.noise_trials or cfg.trials} per level and "
             f"seed) and, in brackets, the share of the noise-free score kept (none when that score is <= 0); "
             "the state is in metres (1e-3: 1 mm). "
-            f"'TraKDis, trained with noise': distilled with noise of std {cfg.train_noise:g}. "
+            f"'TraKDis+noise': distilled with noise of std {cfg.train_noise:g}. "
             "'halves at': the smallest level that keeps half of the noise-free score or less ('-': none); "
             "'change (paired)': the score at that level minus the noise-free one on the same configurations, "
             "mean +- standard error over episodes.", "",

@@ -133,7 +133,7 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         clean = robust[robust["state_noise"] == 0].set_index("method")["mean"]
         assert np.allclose(robust["change"], robust["mean"] - robust["method"].map(clean))  # one episode: its own change
         assert "change at 0.001 (paired)" in md
-        assert "## Robustness" in md and "TraKDis, trained with noise" in md
+        assert "## Robustness" in md and "| ClothFold | TraKDis+noise |" in md
         noisy = json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-trakdis_noise" / "config.json").read_text())
         assert noisy["state_noise"] == 0.001
         timings = pd.read_csv(out / "timings.csv")
