@@ -48,6 +48,14 @@ def test_a_dataset_this_expert_did_not_collect_is_not_relabelled(config, match):
         expert_labels(steps.exclude("step_count"), _steps([4])[1], path="my/ds")
 
 
+def test_a_state_of_the_wrong_size_names_the_dataset():
+    steps, meta = _steps([4])
+    dim = task_spec("ClothFold").state_dim
+    steps["state"] = steps["state"][..., :-2]
+    with pytest.raises(DatasetError, match=rf"^my/ds: 'state' has {dim - 2} values per step, a ClothFold state has {dim}"):
+        expert_labels(steps, meta, path="my/ds")
+
+
 def test_load_trajectories_relabels_in_memory_only(tmp_path):
     """A real (tiny) dataset collected with movement noise: the expert labels differ from the executed
     actions in the movements only, equal the expert's action on each recorded step, and the files stay."""

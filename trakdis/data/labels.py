@@ -37,6 +37,7 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
     Raises :class:`~trakdis.data.DatasetError` (naming ``path``) for a dataset that this expert did not
     collect: a custom policy, or another version of the scripted expert (its labels would differ)."""
     from trakdis.envs.experts import EXPERT_VERSION, expert_action
+    from trakdis.envs.specs import task_spec
 
     if meta.get("config", {}).get("custom_policy", False):
         raise DatasetError(f"{path}: collected by a custom policy, so the scripted expert cannot relabel its actions "
@@ -48,8 +49,11 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
     missing = [k for k in ("state", "step_count", "action") if k not in steps.keys()]
     if missing:
         raise DatasetError(f"{path}: no {missing} to relabel the actions from; it has {sorted(steps.keys())}")
-    recorded = steps.get("action")
-    labels = torch.as_tensor(expert_action(meta["task"], steps.get("state").numpy(), steps.get("step_count").numpy()))
+    recorded, state = steps.get("action"), steps.get("state")
+    dim = task_spec(meta["task"]).state_dim
+    if state.shape[-1] != dim:  # expert_action would index it without naming the file
+        raise DatasetError(f"{path}: 'state' has {state.shape[-1]} values per step, a {meta['task']} state has {dim}")
+    labels = torch.as_tensor(expert_action(meta["task"], state.numpy(), steps.get("step_count").numpy()))
     if labels.shape != recorded.shape:
         raise DatasetError(f"{path}: the expert's actions have shape {tuple(labels.shape)}, the dataset's "
                            f"'action' {tuple(recorded.shape)}")
