@@ -294,8 +294,8 @@ def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: flo
     keys = ("state", "state_estimate") if distill or proprio_dims else ("state_estimate",)
     # Noise here, not in the rollout envs: distillation on the encoded expert data has no rollouts,
     # and noise added while collecting would be the same on every sample of a window.
-    noise = (StateNoise(state_noise, in_keys=["state_estimate"], seed=None if seed is None else seed + 7919)
-             if state_noise > 0 else None)
+    # The global RNG (no private generator): seeded by the run and restored on --resume with it.
+    noise = StateNoise(state_noise, in_keys=["state_estimate"]) if state_noise > 0 else None
     transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
     return make_buffer(capacity, context_len, horizon, rtg_scale, keys=keys, seed=seed, transform=transform,
                        early_windows=early_windows, relabel_return_to_go=relabel_return_to_go)
