@@ -296,20 +296,21 @@ def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], 
                                          f"or under a new --name")
                     finals[-1].append(at.to_numpy(float))
             stats = [summarize_method(f) for f in finals]
-            clean = stats[levels.index(0.0)]["mean"]
+            zero = levels.index(0.0)
+            clean = stats[zero]["mean"]
             kept = [st["mean"] / clean if clean > 0 else float("nan") for st in stats]
             # the same configurations at every level: the change from the noise-free score, episode by episode
-            paired = [paired_difference(np.concatenate(finals[levels.index(0.0)]), np.concatenate(f)) for f in finals]
+            paired = [paired_difference(np.concatenate(finals[zero]), np.concatenate(f)) for f in finals]
             halved = next((lv for lv, k in zip(levels, kept) if k <= 0.5), None)
             rows += [{"task": task, "method": method, "state_noise": lv, **st, "kept": k, "change": d, "change_se": se}
                      for lv, st, k, (d, se) in zip(levels, stats, kept, paired)]
-            at = levels.index(cfg.train_noise) if cfg.train_noise in levels else None
+            trained_at = levels.index(cfg.train_noise) if cfg.train_noise in levels else None
             wide.append({"task": task, "student": LABELS[method],
                          **{f"{lv:g}": f"{st['mean']:.3f} +- {st['std']:.3f}" + (f" ({k:.0%})" if np.isfinite(k) else "")
                             for lv, st, k in zip(levels, stats, kept)},
                          "halves at": "-" if halved is None else f"{halved:g}",
-                         **({f"change at {cfg.train_noise:g} (paired)": f"{paired[at][0]:+.3f} +- {paired[at][1]:.3f}"}
-                            if at is not None else {})})
+                         **({f"change at {cfg.train_noise:g} (paired)":
+                             f"{paired[trained_at][0]:+.3f} +- {paired[trained_at][1]:.3f}"} if trained_at is not None else {})})
             curves[LABELS[method]] = (np.arange(len(levels)), np.array([[f.mean() for f in per] for per in finals]).T)
         if curves:
             pngs.append(plot_mean_std(curves, run.dir / f"robustness_{task}.png", title=task,

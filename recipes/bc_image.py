@@ -119,7 +119,7 @@ def main(argv=None) -> dict:
             evaluate()
         if state.save_and_should_stop(cfg.epochs, unit="epoch"):
             return dict(state)
-    if state["final_eval"] is None and cfg.eval_episodes:
+    if state["final_eval"] is None:  # stays None without evaluation episodes
         state["final_eval"] = evaluate()
     save_image_policy(run.dir / "policy.pt", kind="bc_image", task=cfg.task, horizon=cfg.horizon, trunk=trunk,
                       actor=head, head_config=bc_cfg, extra={"dataset": str(path), "epochs": state["epoch"]})

@@ -124,7 +124,7 @@ def main(argv=None) -> dict:
                                                     f"{run.logger.last('train/loss_nll'):.3f}"),
                          on_update=lambda u: evaluate(u) if cfg.eval_every and u % cfg.eval_every == 0 and u < cfg.updates else None):
         return dict(state)
-    if state["final_eval"] is None and cfg.eval_episodes:
+    if state["final_eval"] is None:  # stays None without evaluation episodes
         state["final_eval"] = evaluate(state["updates"])
     save_image_policy(run.dir / "policy.pt", kind="dt_image", task=cfg.task, horizon=cfg.horizon, trunk=trunk,
                       actor=head, head_config=dt_cfg, target_return=eval_rtg,
