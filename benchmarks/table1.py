@@ -22,7 +22,9 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
   (``evaluate.py --state-noise``, ``--noise-trials`` episodes per level, the same configurations).
 
 A stage whose output file exists is skipped and an interrupted one resumed, so ``--resume`` (or
-the same command again) continues where a kill stopped it. ``--methods`` picks a subset.
+the same command again) continues where a kill stopped it. ``--methods`` picks a subset. The
+evaluations run as low-priority background processes, one at a time, as soon as their policy exists,
+beside the training stages that follow (``--overlap``; ``--no-overlap``: in turn; the same numbers).
 
 Writes ``<root>/table1/<name>/``: ``table1.md`` (the paper's layout, ours beside the paper's
 numbers, then per method mean +- std, 25th / 50th / 75th percentiles over all episodes of all
@@ -37,6 +39,7 @@ from __future__ import annotations
 import functools
 import shlex
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -109,6 +112,10 @@ class Table1Config(RunConfig):
     parallel: bool = True
     """evaluations (the table's, the robustness study's and the students' curves) on 2 worker processes
     (--no-parallel: in turn; the same numbers)"""
+    overlap: bool = True
+    """the table's and the robustness study's evaluations as low-priority background processes, one at a
+    time, beside the training stages that follow them (--no-overlap: each in turn when its policy exists;
+    the same numbers)"""
 
     def __post_init__(self):
         if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
@@ -139,52 +146,61 @@ PRESETS = {"quick": {
 def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
                   seed: int) -> tuple[dict[str, Path], dict[str, Path]]:
     """All stages of one task and seed; returns ``{method: evaluation run directory}`` and, for the
-    robustness study, ``{student: its evaluation over the noise levels}``."""
+    robustness study, ``{student: its evaluation over the noise levels}``. With ``--overlap`` the
+    evaluations are queued (``stages.submit``) as soon as their policy exists, and have run once the
+    caller's ``stages.queued()`` block is left; else each runs in turn when its policy exists."""
     base = f"{name}-{task}-s{seed}"
     stage = functools.partial(stages.run, seed=seed)  # every stage of this task and seed
+    evaluation = functools.partial(stages.submit if cfg.overlap else stages.run, "evaluate", seed=seed)
     parallel = ["--parallel"] if cfg.parallel else ["--no-parallel"]
     student_args = [*parallel, *shlex.split(cfg.student_args)]  # the curves' evaluations
     methods = set(cfg.methods)
     needs_teacher = methods & {"teacher", "trakdis", "no_aug", "no_pretrain", "no_distill"}
     policies: dict[str, Path] = {}
+    evals: dict[str, Path] = {}
     teacher = encoder = None
+
+    def evaluate(method: str, policy_args: list[str]) -> None:  # --trials episodes of one method
+        evals[method] = evaluation(f"{base}-eval-{method}", "summary.csv",
+                                   [*policy_args, "--trials", str(cfg.trials), "--videos", "0", *parallel])
+
+    def made(method: str, directory: Path) -> Path:  # a method's policy exists: evaluate it (and the expert)
+        policies[method] = directory
+        if "expert" in methods and "expert" not in evals:
+            from trakdis.policies import load_policy
+
+            # the expert plays episodes of the other policies' length
+            evaluate("expert", ["--policy", "expert", "--task", task, "--horizon", str(load_policy(directory).horizon)])
+        if method in methods:
+            evaluate(method, ["--policy", str(directory)])
+        return directory
+
     if needs_teacher:
-        # with the images the encoder stage reads (one collection, not two); evaluated by evaluate.py below
-        teacher = stage("online_dt", f"{base}-teacher", "policy.pt",
-                        ["--task", task, "--collect-pixels", "--eval-episodes", "0", *shlex.split(cfg.teacher_args)])
-        policies["teacher"] = teacher
+        # with the images the encoder stage reads (one collection, not two); evaluated by evaluate.py
+        teacher = made("teacher", stage("online_dt", f"{base}-teacher", "policy.pt",
+                                        ["--task", task, "--collect-pixels", "--eval-episodes", "0",
+                                         *shlex.split(cfg.teacher_args)]))
     if methods & {"trakdis", "no_pretrain", "no_distill"}:
         encoder = stage("train_encoder", f"{base}-encoder", "encoder.pt", ["--task", task, *shlex.split(cfg.encoder_args)])
     arms = {"trakdis": [], "no_pretrain": ["--no-weight-copy"], "no_distill": ["--no-distill"]}
     for method, flags in arms.items():
         if method in methods:
-            policies[method] = stage("distill", f"{base}-{method}", "policy.pt",
-                                     ["--teacher", str(teacher), "--encoder", str(encoder),
-                                      *student_args, *flags])
+            made(method, stage("distill", f"{base}-{method}", "policy.pt",
+                               ["--teacher", str(teacher), "--encoder", str(encoder), *student_args, *flags]))
     if "no_aug" in methods:
         enc_noaug = stage("train_encoder", f"{base}-encoder-noaug", "encoder.pt",
                           ["--task", task, *shlex.split(cfg.encoder_args), "--no-aug"])
-        policies["no_aug"] = stage("distill", f"{base}-no_aug", "policy.pt",
-                                   ["--teacher", str(teacher), "--encoder", str(enc_noaug), *student_args])
-    # the baselines evaluate nothing themselves: evaluate.py below does (their --*-args may say otherwise)
+        made("no_aug", stage("distill", f"{base}-no_aug", "policy.pt",
+                             ["--teacher", str(teacher), "--encoder", str(enc_noaug), *student_args]))
+    # the baselines evaluate nothing themselves: evaluate.py does (their --*-args may say otherwise)
     if "bc_image" in methods:
-        policies["bc_image"] = stage("bc_image", f"{base}-bc_image", "policy.pt",
-                                     ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.bc_args)])
+        made("bc_image", stage("bc_image", f"{base}-bc_image", "policy.pt",
+                               ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.bc_args)]))
     if "dt_image" in methods:
-        policies["dt_image"] = stage("dt_image", f"{base}-dt_image", "policy.pt",
-                                     ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.dt_image_args)])
-    evals = {}
-    for method in (m for m in METHODS if m in methods):
-        if method == "expert":
-            from trakdis.policies import load_policy
-
-            # the expert plays episodes of the other policies' length
-            horizon = load_policy(next(iter(policies.values()))).horizon if policies else 100
-            args = ["--policy", "expert", "--task", task, "--horizon", str(horizon)]
-        else:
-            args = ["--policy", str(policies[method])]
-        evals[method] = stage("evaluate", f"{base}-eval-{method}", "summary.csv",
-                              [*args, "--trials", str(cfg.trials), "--videos", "0", *parallel])
+        made("dt_image", stage("dt_image", f"{base}-dt_image", "policy.pt",
+                               ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.dt_image_args)]))
+    if "expert" in methods and "expert" not in evals:  # the expert alone
+        evaluate("expert", ["--policy", "expert", "--task", task, "--horizon", "100"])
     robust = {}
     if cfg.noise_levels and "trakdis" in methods:
         students = {"trakdis": policies["trakdis"],
@@ -193,10 +209,10 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
                                             *student_args, "--state-noise", str(cfg.train_noise)])}
         levels = [str(x) for x in cfg.noise_levels]
         for method, policy in students.items():
-            robust[method] = stage("evaluate", f"{base}-noise-{method}", "summary.csv",
-                                   ["--policy", str(policy), "--trials", str(cfg.noise_trials or cfg.trials),
-                                    "--videos", "0", *parallel, "--state-noise", *levels])
-    return evals, robust
+            robust[method] = evaluation(f"{base}-noise-{method}", "summary.csv",
+                                        ["--policy", str(policy), "--trials", str(cfg.noise_trials or cfg.trials),
+                                         "--videos", "0", *parallel, "--state-noise", *levels])
+    return {m: evals[m] for m in METHODS if m in evals}, robust
 
 
 def summarize_method(finals_per_seed: list[np.ndarray]) -> dict:
@@ -341,16 +357,19 @@ def main(argv=None) -> pd.DataFrame:
     stages = Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
     evals: dict[tuple[str, str], list[Path]] = {}
     robust: dict[tuple[str, str], list[Path]] = {}
-    for task in cfg.tasks:
-        for seed in seeds:
-            done, noise = run_task_seed(stages, cfg, run.dir.name, task, seed)
-            for method, directory in done.items():
-                evals.setdefault((task, method), []).append(directory)
-            for method, directory in noise.items():
-                robust.setdefault((task, method), []).append(directory)
+    start = time.perf_counter()
+    with stages.queued():  # leaving it: every evaluation has run
+        for task in cfg.tasks:
+            for seed in seeds:
+                done, noise = run_task_seed(stages, cfg, run.dir.name, task, seed)
+                for method, directory in done.items():
+                    evals.setdefault((task, method), []).append(directory)
+                for method, directory in noise.items():
+                    robust.setdefault((task, method), []).append(directory)
     write_tables(run, cfg, evals)
     pngs = write_curves(run, cfg, seeds) + write_robustness(run, cfg, robust)
-    run.print(f"wall time of the stages run so far: {sum(stages.timings.values()):.0f} s (timings.csv)")
+    run.print(f"wall time {time.perf_counter() - start:.0f} s; the stages run so far: {sum(stages.timings.values()):.0f} s "
+              "(timings.csv; background stages overlap the others)")
     run.print(f"wrote {run.dir / 'table1.md'}" + "".join(f", {p.name}" for p in pngs))
     print((run.dir / "table1.md").read_text())
     return pd.read_csv(run.dir / "table1.csv")

@@ -179,11 +179,15 @@ def test_table1_stages_and_their_options():
 
     class Recorder:
         def __init__(self):
-            self.calls = {}
+            self.calls, self.submitted = {}, []
 
         def run(self, recipe, run_name, output, args, *, seed=None):
             self.calls[run_name] = (recipe, list(args), seed)
             return Path("runs") / recipe / run_name
+
+        def submit(self, recipe, run_name, output, args, *, seed=None):
+            self.submitted.append(run_name)
+            return self.run(recipe, run_name, output, args, seed=seed)
 
     methods = [m for m in bench.METHODS if m != "expert"]  # the expert's stage reads the teacher's file
     cfg = parse_config(bench.Table1Config, ["--noise-levels", "0", "1e-3", "--noise-trials", "7", "--methods", *methods])
@@ -194,6 +198,11 @@ def test_table1_stages_and_their_options():
     assert {seed for _, _, seed in calls.values()} == {3}
     evaluations = [args for recipe, args, _ in calls.values() if recipe == "evaluate"]
     assert len(evaluations) == 9 and all("--parallel" in a for a in evaluations)
+    # --overlap (default): every evaluation queued as soon as its policy exists (the teacher's and the expert's first)
+    order = list(calls)
+    assert sorted(stages.submitted) == sorted(n for n, (recipe, _, _) in calls.items() if recipe == "evaluate")
+    assert order.index("t-ClothFold-s3-eval-teacher") < order.index("t-ClothFold-s3-encoder")
+    assert order.index("t-ClothFold-s3-eval-trakdis") < order.index("t-ClothFold-s3-no_pretrain")
     students = {name: args for name, (recipe, args, _) in calls.items() if recipe == "distill"}
     assert len(students) == 5 and all("--parallel" in a for a in students.values())
     noisy = students["t-ClothFold-s3-trakdis_noise"]
@@ -205,9 +214,9 @@ def test_table1_stages_and_their_options():
     assert robust_eval[robust_eval.index("--state-noise") + 1:] == ["0.0", "0.001"]
     assert robust_eval[robust_eval.index("--trials") + 1] == "7"
     stages = Recorder()
-    bench.run_task_seed(stages, parse_config(bench.Table1Config, ["--no-parallel", "--noise-levels", "--methods", *methods]),
-                        "t", "ClothFold", 0)
-    assert not any("--parallel" in args for _, args, _ in stages.calls.values())
+    bench.run_task_seed(stages, parse_config(bench.Table1Config, ["--no-parallel", "--no-overlap", "--noise-levels",
+                                                                  "--methods", *methods]), "t", "ClothFold", 0)
+    assert not any("--parallel" in args for _, args, _ in stages.calls.values()) and not stages.submitted
     assert not any("noise" in name for name in stages.calls)  # no robustness study
 
 

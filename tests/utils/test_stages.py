@@ -1,4 +1,5 @@
 """trakdis.utils.stages: recipes run as the stages of a pipeline, skipped, resumed, in the background."""
+import json
 import sys
 import textwrap
 
@@ -81,6 +82,39 @@ def test_cleanup_stops_a_background_stage_left_running_by_an_error(stages, tmp_p
     assert job.proc.wait(timeout=10) != 0
 
 
+def test_submitted_stages_run_in_the_background_one_at_a_time_and_are_waited_for(stages, tmp_path):
+    (tmp_path / "recipes" / "slow.py").write_text(RECIPE.replace("import json, sys", "import json, sys, time").replace('"toy"', '"slow"')
+                                                   .replace("    if \"--fail\"", "    time.sleep(0.5)\n    if \"--fail\""))
+    with stages.queued():
+        first = stages.submit("slow", "q1", "out.txt", [])
+        second = stages.submit("slow", "q2", "out.txt", [], seed=9)
+        assert len(stages._running) == 1 and len(stages._queue) == 1  # max_background=1: the second waits
+        stages.run("toy", "fg", "out.txt", [])  # a foreground stage meanwhile
+    assert (first / "out.txt").exists() and (second / "out.txt").exists()
+    assert calls(tmp_path, "fg")
+    args = json.loads((tmp_path / "runs" / "slow" / "q2" / "calls.json").read_text())[0]
+    assert args[args.index("--seed") + 1] == "9" and "--no-progress" in args
+    assert {"slow/q1 (background)", "slow/q2 (background)", "toy/fg"} <= set(stages.timings)
+    with stages.queued():
+        assert stages.submit("slow", "q1", "out.txt", []) == first  # finished: skipped, nothing started
+        assert not stages._running
+
+
+def test_a_failed_submitted_stage_raises_and_stops_the_queue(stages, tmp_path):
+    (tmp_path / "recipes" / "sleepy.py").write_text("import time\ntime.sleep(60)\n")
+    with pytest.raises(RuntimeError, match=r"background stage bad failed \(exit code 3\)"):
+        with stages.queued():
+            stages.submit("toy", "bad", "out.txt", ["--fail"])
+            stages.submit("toy", "never", "out.txt", [])
+    assert not (tmp_path / "runs" / "toy" / "never").exists()  # dropped after the failure
+    with pytest.raises(KeyError):
+        with stages.queued():
+            stages.submit("sleepy", "s", "out.txt", [])
+            job = stages._running[0]
+            raise KeyError("a foreground stage failed")
+    assert job.proc.poll() is not None and not stages._running  # terminated, not left running
+
+
 def test_import_recipe_names_a_missing_script(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.py"):
         import_recipe(tmp_path / "nope.py")
@@ -91,3 +125,47 @@ def test_import_recipe_names_a_missing_script(tmp_path):
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_pipeline_leaves_no_background_stage_running(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import time
+    from pathlib import Path
+
+    (tmp_path / "recipes").mkdir()
+    (tmp_path / "recipes" / "sleepy.py").write_text("import os, time\nprint(os.getpid(), flush=True)\ntime.sleep(60)\n")
+    script = tmp_path / "pipe.py"
+    script.write_text(textwrap.dedent('''
+        import time
+        from trakdis.utils.run import Run, RunConfig
+        from trakdis.utils.stages import Stages
+        run = Run.start("pipe", RunConfig, ["--name", "p", "--no-progress"])
+        stages = Stages(run, "recipes")
+        stages.run("sleepy", "s", "out.txt", [], background=True)
+        time.sleep(60)
+    '''))
+    parent = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path)
+    log = tmp_path / "runs" / "pipe" / "p" / "s.log"
+    deadline = time.time() + 60
+    while time.time() < deadline and not (log.exists() and log.read_text().strip()):
+        time.sleep(0.2)
+    child = int(log.read_text().split()[0])
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+
+    def alive(pid):  # a zombie (state Z: dead, not yet reaped by whoever adopted it) counts as dead
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+
+    deadline = time.time() + 10
+    while time.time() < deadline and alive(child):
+        time.sleep(0.1)
+    if not alive(child):
+        return
+    os.kill(child, signal.SIGKILL)
+    pytest.fail("the background stage outlived its killed pipeline")

@@ -14,6 +14,14 @@ subprocess on the core the foreground stages leave idle::
         expert = stages.wait(job)
     stages.report()                    # wall seconds per stage
 
+Stages that need nothing from the ones after them (evaluations) can be queued instead, to run in the
+background beside the foreground stages, at most ``max_background`` at a time::
+
+    with stages.queued():              # leaving the block waits for the queue (after an error: stops it)
+        teacher = stages.run("online_dt", "cf-teacher", "policy.pt", [...])
+        stages.submit("evaluate", "cf-eval-teacher", "summary.csv", ["--policy", str(teacher)])
+        encoder = stages.run("train_encoder", "cf-encoder", "encoder.pt", [...])   # beside the evaluation
+
 The common options (``--name``, ``--root``, ``--seed``, ``--threads``, ``--no-progress``,
 ``--logger``) come from the pipeline run's :class:`~trakdis.utils.run.RunConfig` (``seed=``: another
 seed for one stage). With ``timings_path``, the wall seconds per stage are kept in that CSV (rewritten
@@ -24,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -38,6 +47,17 @@ from .checkpoint import atomic_write_bytes
 from .run import Run
 
 __all__ = ["BackgroundStage", "Stages", "import_recipe"]
+
+
+def _background_child() -> None:
+    """In a background stage's process, before it runs: low priority, and (Linux) a SIGTERM when the
+    pipeline's process dies, so that a killed pipeline leaves no stage running that its ``--resume``
+    would start a second time on the same run directory."""
+    os.nice(10)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
 
 
 def import_recipe(path: str | Path, prefix: str = "trakdis_recipe_") -> ModuleType:
@@ -67,8 +87,14 @@ class Stages:
     holds each stage's wall seconds under ``"<recipe>/<run_name>"`` (a background one with
     ``" (background)"``), kept in ``timings_path`` if given."""
 
-    def __init__(self, run: Run, recipes: str | Path, *, timings_path: str | Path | None = None):
+    def __init__(self, run: Run, recipes: str | Path, *, timings_path: str | Path | None = None,
+                 max_background: int = 1):
+        if max_background < 1:
+            raise ValueError(f"max_background must be >= 1, got {max_background}")
         self.pipeline, self.recipes = run, Path(recipes)
+        self.max_background = int(max_background)
+        self._queue: list[tuple[str, str, str, list[str], int | None]] = []  # submitted, not started yet
+        self._running: list[BackgroundStage] = []  # started by the queue
         self.timings_path = None if timings_path is None else Path(timings_path)
         self.timings: dict[str, float] = {}
         if self.timings_path is not None and self.timings_path.exists():
@@ -99,8 +125,9 @@ class Stages:
             self.pipeline.print(f"{recipe}: {run_name} started in the background (log: {log_path})")
             with open(log_path, "w") as log:
                 proc = subprocess.Popen([sys.executable, str(script), *common, *args], stdout=log,
-                                        stderr=subprocess.STDOUT, preexec_fn=lambda: os.nice(10))
+                                        stderr=subprocess.STDOUT, preexec_fn=_background_child)
             return BackgroundStage(proc, directory, f"{recipe}/{run_name} (background)")
+        self.pump()  # a queued stage may start beside this one
         if recipe not in self._modules:
             self._modules[recipe] = import_recipe(script)
         start = time.perf_counter()
@@ -127,6 +154,50 @@ class Stages:
         self._record(job.key, time.perf_counter() - job.started)
         self.pipeline.print(f"{name}: done in the background ({job.directory})")
         return job.directory
+
+    def submit(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None) -> Path:
+        """Queue a stage (the arguments of :meth:`run`) to run in the background as soon as fewer than
+        ``max_background`` queued stages run: now, or at the next :meth:`run`, :meth:`pump` or
+        :meth:`drain`. Returns its run directory, which holds ``output`` once :meth:`drain` returned
+        (use inside :meth:`queued`)."""
+        self._queue.append((recipe, run_name, output, list(args), seed))
+        self.pump()
+        return Path(self.pipeline.cfg.root) / recipe / run_name
+
+    def pump(self) -> None:
+        """Collect the queued stages that finished (a failed one raises, naming its log) and start
+        waiting ones while fewer than ``max_background`` run."""
+        for job in [j for j in self._running if j.proc.poll() is not None]:
+            self._running.remove(job)
+            self.wait(job)
+        while self._queue and len(self._running) < self.max_background:
+            recipe, run_name, output, args, seed = self._queue.pop(0)
+            job = self.run(recipe, run_name, output, args, seed=seed, background=True)
+            if isinstance(job, BackgroundStage):  # else: its output existed, skipped
+                self._running.append(job)
+
+    def drain(self, poll_seconds: float = 0.5) -> None:
+        """Wait until every submitted stage has run."""
+        while self._queue or self._running:
+            self.pump()
+            if self._running:
+                time.sleep(poll_seconds)
+
+    @contextlib.contextmanager
+    def queued(self) -> Iterator["Stages"]:
+        """A block whose submitted stages run beside its foreground ones: leaving it waits for them
+        (:meth:`drain`); an error terminates the running ones and drops the waiting ones."""
+        try:
+            yield self
+            self.drain()
+        finally:
+            self._queue.clear()
+            for job in self._running:
+                if job.proc.poll() is None:
+                    job.proc.terminate()
+            for job in self._running:
+                job.proc.wait()
+            self._running.clear()
 
     @staticmethod
     @contextlib.contextmanager
