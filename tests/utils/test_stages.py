@@ -100,6 +100,18 @@ def test_submitted_stages_run_in_the_background_one_at_a_time_and_are_waited_for
         assert not stages._running
 
 
+def test_the_queue_starts_the_next_stage_while_a_foreground_stage_runs(stages, tmp_path):
+    (tmp_path / "recipes" / "slow.py").write_text(RECIPE.replace("import json, sys", "import json, sys, time")
+                                                   .replace('"toy"', '"slow"')
+                                                   .replace("    if \"--fail\"", "    time.sleep(0.3)\n    if \"--fail\""))
+    (tmp_path / "recipes" / "nap.py").write_text("import time\n\ndef main(argv):\n    time.sleep(8)\n")
+    with stages.queued(poll_seconds=0.1):
+        first = stages.submit("slow", "a", "out.txt", [])
+        second = stages.submit("slow", "b", "out.txt", [])
+        stages.run("nap", "n", "never.txt", [])  # 8 s in the foreground, no stage boundary meanwhile
+        assert (first / "out.txt").exists() and (second / "out.txt").exists()  # both ran during the nap
+
+
 def test_a_failed_submitted_stage_raises_and_stops_the_queue(stages, tmp_path):
     (tmp_path / "recipes" / "sleepy.py").write_text("import time\ntime.sleep(60)\n")
     with pytest.raises(RuntimeError, match=r"background stage bad failed \(exit code 3\)"):

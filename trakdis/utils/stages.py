@@ -32,9 +32,10 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import os
-import signal
+import shutil
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,15 +50,21 @@ from .run import Run
 __all__ = ["BackgroundStage", "Stages", "import_recipe"]
 
 
-def _background_child() -> None:
-    """In a background stage's process, before it runs: low priority, and (Linux) a SIGTERM when the
-    pipeline's process dies, so that a killed pipeline leaves no stage running that its ``--resume``
-    would start a second time on the same run directory."""
-    os.nice(10)
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+# A background stage's process runs its recipe through this bootstrap (argv: the pipeline's pid, the
+# script, its arguments) instead of a ``preexec_fn``, which is unsafe once the queue's thread starts
+# processes: on Linux it asks for SIGTERM when the pipeline's process dies (PR_SET_PDEATHSIG; exits
+# if that already happened), so that a killed pipeline leaves no stage running that its ``--resume``
+# would start a second time on the same run directory. ``nice -n 10`` in front of it: low priority.
+_BOOTSTRAP = """import os, runpy, signal, sys
+parent = int(sys.argv[1])
+sys.argv = sys.argv[2:]
+if sys.platform.startswith("linux"):
+    import ctypes
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        sys.exit("the pipeline that started this stage has exited")
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
 
 
 def import_recipe(path: str | Path, prefix: str = "trakdis_recipe_") -> ModuleType:
@@ -95,6 +102,8 @@ class Stages:
         self.max_background = int(max_background)
         self._queue: list[tuple[str, str, str, list[str], int | None]] = []  # submitted, not started yet
         self._running: list[BackgroundStage] = []  # started by the queue
+        self._lock = threading.RLock()  # the queue and the timings, shared with the queue's thread
+        self._failure: BaseException | None = None  # a queued stage's failure, seen by the queue's thread
         self.timings_path = None if timings_path is None else Path(timings_path)
         self.timings: dict[str, float] = {}
         if self.timings_path is not None and self.timings_path.exists():
@@ -124,8 +133,9 @@ class Stages:
             log_path = self.pipeline.dir / f"{run_name}.log"
             self.pipeline.print(f"{recipe}: {run_name} started in the background (log: {log_path})")
             with open(log_path, "w") as log:
-                proc = subprocess.Popen([sys.executable, str(script), *common, *args], stdout=log,
-                                        stderr=subprocess.STDOUT, preexec_fn=_background_child)
+                nice = ["nice", "-n", "10"] if shutil.which("nice") else []
+                proc = subprocess.Popen([*nice, sys.executable, "-c", _BOOTSTRAP, str(os.getpid()), str(script),
+                                         *common, *args], stdout=log, stderr=subprocess.STDOUT)
             return BackgroundStage(proc, directory, f"{recipe}/{run_name} (background)")
         self.pump()  # a queued stage may start beside this one
         if recipe not in self._modules:
@@ -137,10 +147,11 @@ class Stages:
         return directory
 
     def _record(self, key: str, seconds: float) -> None:
-        self.timings[key] = seconds
-        if self.timings_path is not None:
-            frame = pd.DataFrame({"stage": list(self.timings), "seconds": list(self.timings.values())})
-            atomic_write_bytes(self.timings_path, frame.to_csv(index=False).encode())
+        with self._lock:
+            self.timings[key] = seconds
+            if self.timings_path is not None:
+                frame = pd.DataFrame({"stage": list(self.timings), "seconds": list(self.timings.values())})
+                atomic_write_bytes(self.timings_path, frame.to_csv(index=False).encode())
 
     def wait(self, job: Path | BackgroundStage) -> Path:
         """Wait for a stage that :meth:`run` started in the background (a directory: it was skipped)
@@ -157,24 +168,39 @@ class Stages:
 
     def submit(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None) -> Path:
         """Queue a stage (the arguments of :meth:`run`) to run in the background as soon as fewer than
-        ``max_background`` queued stages run: now, or at the next :meth:`run`, :meth:`pump` or
-        :meth:`drain`. Returns its run directory, which holds ``output`` once :meth:`drain` returned
-        (use inside :meth:`queued`)."""
-        self._queue.append((recipe, run_name, output, list(args), seed))
+        ``max_background`` queued stages run (inside :meth:`queued`, whose thread starts it while the
+        foreground stages run). Returns its run directory, which holds ``output`` once :meth:`drain`
+        returned."""
+        with self._lock:
+            self._queue.append((recipe, run_name, output, list(args), seed))
         self.pump()
         return Path(self.pipeline.cfg.root) / recipe / run_name
 
     def pump(self) -> None:
-        """Collect the queued stages that finished (a failed one raises, naming its log) and start
-        waiting ones while fewer than ``max_background`` run."""
-        for job in [j for j in self._running if j.proc.poll() is not None]:
-            self._running.remove(job)
-            self.wait(job)
-        while self._queue and len(self._running) < self.max_background:
-            recipe, run_name, output, args, seed = self._queue.pop(0)
-            job = self.run(recipe, run_name, output, args, seed=seed, background=True)
-            if isinstance(job, BackgroundStage):  # else: its output existed, skipped
-                self._running.append(job)
+        """Collect the queued stages that finished (a failed one raises, naming its log, here or, when
+        the queue's thread saw it, at the next call) and start waiting ones while fewer than
+        ``max_background`` run."""
+        with self._lock:
+            if self._failure is not None:
+                failure, self._failure = self._failure, None
+                raise failure
+            for job in [j for j in self._running if j.proc.poll() is not None]:
+                self._running.remove(job)
+                self.wait(job)
+            while self._queue and len(self._running) < self.max_background:
+                recipe, run_name, output, args, seed = self._queue.pop(0)
+                job = self.run(recipe, run_name, output, args, seed=seed, background=True)
+                if isinstance(job, BackgroundStage):  # else: its output existed, skipped
+                    self._running.append(job)
+
+    def _poll(self, stop: threading.Event, seconds: float) -> None:  # the queue's thread
+        while not stop.wait(seconds):
+            try:
+                self.pump()
+            except BaseException as err:  # noqa: BLE001 - handed to the main thread's next pump()
+                with self._lock:
+                    self._failure = err
+                return
 
     def drain(self, poll_seconds: float = 0.5) -> None:
         """Wait until every submitted stage has run."""
@@ -184,20 +210,28 @@ class Stages:
                 time.sleep(poll_seconds)
 
     @contextlib.contextmanager
-    def queued(self) -> Iterator["Stages"]:
-        """A block whose submitted stages run beside its foreground ones: leaving it waits for them
+    def queued(self, poll_seconds: float = 0.5) -> Iterator["Stages"]:
+        """A block whose submitted stages run beside its foreground ones, each started (by a thread
+        polling every ``poll_seconds``) as soon as a slot is free: leaving the block waits for them
         (:meth:`drain`); an error terminates the running ones and drops the waiting ones."""
+        stop = threading.Event()
+        poller = threading.Thread(target=self._poll, args=(stop, poll_seconds), name="stages-queue", daemon=True)
+        poller.start()
         try:
             yield self
-            self.drain()
+            self.drain(poll_seconds)
         finally:
-            self._queue.clear()
-            for job in self._running:
-                if job.proc.poll() is None:
-                    job.proc.terminate()
-            for job in self._running:
-                job.proc.wait()
-            self._running.clear()
+            stop.set()
+            poller.join()
+            with self._lock:
+                self._queue.clear()
+                for job in self._running:
+                    if job.proc.poll() is None:
+                        job.proc.terminate()
+                for job in self._running:
+                    job.proc.wait()
+                self._running.clear()
+                self._failure = None
 
     @staticmethod
     @contextlib.contextmanager
