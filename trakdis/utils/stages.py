@@ -204,10 +204,12 @@ class Stages:
 
     def drain(self, poll_seconds: float = 0.5) -> None:
         """Wait until every submitted stage has run."""
-        while self._queue or self._running:
-            self.pump()
-            if self._running:
-                time.sleep(poll_seconds)
+        while True:
+            with self._lock:  # the queue's thread moves a stage from the queue to the running ones under it
+                self.pump()
+                if not (self._queue or self._running):
+                    return
+            time.sleep(poll_seconds)
 
     @contextlib.contextmanager
     def queued(self, poll_seconds: float = 0.5) -> Iterator["Stages"]:
