@@ -73,6 +73,18 @@ def test_background_stage_waits_and_failures_name_the_log(stages, tmp_path):
         stages.wait(bad)
 
 
+def test_a_background_stage_runs_as_its_script_would(stages, tmp_path):
+    (tmp_path / "recipes" / "helper.py").write_text("VALUE = 'sibling'\n")
+    (tmp_path / "recipes" / "uses_sibling.py").write_text(
+        "import sys\nfrom pathlib import Path\nimport helper\n"
+        "if __name__ == '__main__':\n"
+        "    out = Path(sys.argv[sys.argv.index('--root') + 1]) / 'uses_sibling' / 'u'\n"
+        "    out.mkdir(parents=True)\n"
+        "    (out / 'out.txt').write_text(helper.VALUE + ' ' + Path(sys.argv[0]).name)\n")
+    job = stages.run("uses_sibling", "u", "out.txt", [], background=True)
+    assert (stages.wait(job) / "out.txt").read_text() == "sibling uses_sibling.py"
+
+
 def test_cleanup_stops_a_background_stage_left_running_by_an_error(stages, tmp_path):
     (tmp_path / "recipes" / "sleepy.py").write_text("import time\ntime.sleep(60)\n")
     job = stages.run("sleepy", "s", "out.txt", [], background=True)

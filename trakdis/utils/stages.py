@@ -55,9 +55,11 @@ __all__ = ["BackgroundStage", "Stages", "import_recipe"]
 # processes: on Linux it asks for SIGTERM when the pipeline's process dies (PR_SET_PDEATHSIG; exits
 # if that already happened), so that a killed pipeline leaves no stage running that its ``--resume``
 # would start a second time on the same run directory. ``nice -n 10`` in front of it: low priority.
+# Otherwise the script runs as ``python script.py`` would run it (its directory first on ``sys.path``).
 _BOOTSTRAP = """import os, runpy, signal, sys
 parent = int(sys.argv[1])
 sys.argv = sys.argv[2:]
+sys.path[0] = os.path.dirname(os.path.abspath(sys.argv[0]))  # as `python script.py` has it (not -c's cwd)
 if sys.platform.startswith("linux"):
     import ctypes
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
@@ -194,6 +196,8 @@ class Stages:
                     self._running.append(job)
 
     def _poll(self, stop: threading.Event, seconds: float) -> None:  # the queue's thread
+        # PR_SET_PDEATHSIG follows the thread that started a process: this one ends only once the queue
+        # is drained, or on a failure, which stops the queue's other stages anyway.
         while not stop.wait(seconds):
             try:
                 self.pump()
