@@ -5,7 +5,8 @@
     python recipes/evaluate.py --policy runs/distill/<name> --state-noise 0 1e-5 1e-4 1e-3
 
 Runs ``--trials`` episodes (default 100, the paper's count) per state-noise level and writes to
-``runs/evaluate/<name>/``: ``episodes.csv`` (one row per episode), ``summary.csv`` and
+``runs/evaluate/<name>/``: ``episodes.csv`` (one row per episode, with where each picker first closed
+and whether its corner was lifted: ``trakdis.evaluation.grasp_report``), ``summary.csv`` and
 ``summary.md`` (mean, std, 25/50/75th percentiles of the normalized performance at the episode's
 end) and ``videos/`` (a few extra episodes: large render side by side with the agent's 32x32 view).
 """
@@ -20,7 +21,7 @@ import pandas as pd
 
 from trakdis.envs import close_env
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import episode_frames, run_episodes, summarize, write_summary_table
+from trakdis.evaluation import episode_frames, grasp_report, run_episodes, summarize, summarize_grasps, write_summary_table
 from trakdis.policies import load_policy
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.video import write_video
@@ -80,20 +81,25 @@ def main(argv=None) -> pd.DataFrame:
     for i, sigma in enumerate(cfg.state_noise):
         env = handle.make_env(num_envs=cfg.num_envs, split=cfg.split, state_noise=sigma, noise_seed=cfg.seed + 7919,
                               parallel=cfg.parallel, target_return=cfg.target_return)
+        grasps = []  # where each episode's pickers first closed (trakdis.evaluation.grasps)
         try:  # the same configurations for every noise level (and every policy evaluated with this seed)
             res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.trials, max_steps=handle.horizon,
-                               desc=f"sigma={sigma:g}", seed=cfg.seed)
+                               desc=f"sigma={sigma:g}", seed=cfg.seed,
+                               on_episode=lambda ep: grasps.append(grasp_report(handle.task, ep)))
         finally:
             close_env(env)
         for k in range(len(res.final_performance)):
             rows.append({"state_noise": sigma, "episode": k, "final_normalized_performance": res.final_performance[k],
-                         "return": res.returns[k], "length": int(res.lengths[k]), "sim_unstable": bool(res.unstable[k])})
+                         "return": res.returns[k], "length": int(res.lengths[k]), "sim_unstable": bool(res.unstable[k]),
+                         **(grasps[k] or {})})
         s = summarize(res.final_performance)
         summaries.append({"task": handle.task, "policy": handle.kind, "state_noise": sigma, **s,
                           "unstable": int(res.unstable.sum())})
         run.log(i, {"eval/state_noise": sigma, "eval/normalized_performance": s["mean"], "eval/std": s["std"]})
         run.print(f"sigma={sigma:g}: normalized performance {s['mean']:.3f} +- {s['std']:.3f} "
                   f"(p25 {s['p25']:.3f}, p50 {s['p50']:.3f}, p75 {s['p75']:.3f}; {s['n']} trials)")
+        if all(g is not None for g in grasps):
+            run.print(f"sigma={sigma:g}: {summarize_grasps(handle.task, grasps)}")
     pd.DataFrame(rows).to_csv(run.dir / "episodes.csv", index=False)
     frame = write_summary_table(summaries, run.dir / "summary.csv", run.dir / "summary.md",
                                 columns=("task", "policy", "state_noise", "n", "mean", "std", "p25", "p50", "p75"))

@@ -215,6 +215,8 @@ def test_evaluate_student_and_expert(workdir, student):
     assert {"mean", "std", "p25", "p50", "p75"} <= set(summary.columns)
     episodes = pd.read_csv(run_dir / "episodes.csv")
     assert len(episodes) == 6 and (episodes["length"] == HORIZON).all()
+    # where each picker first closed, and whether its corner was lifted (trakdis.evaluation.grasp_report)
+    assert {"picker0_first_close_cm", "picker0_corner_lifted", "picker1_first_close_cm"} <= set(episodes.columns)
     assert summary["mean"].iloc[0] == pytest.approx(episodes[episodes.state_noise == 0]["final_normalized_performance"].mean())
     md = (run_dir / "summary.md").read_text()
     assert md.startswith("| task | policy | state_noise | n | mean") and "| ClothFold | student |" in md

@@ -1,7 +1,8 @@
 """Evaluation: playing episodes of a policy in a batched env and summarising their scores
 (:mod:`.episodes`), the scripted expert's scores cached on disk (:mod:`.expert_scores`), and
-evaluations of a saved policy in a background process at low priority (:mod:`.background`), and a
-run's evaluation protocol: the same episodes every time, their scores logged (:mod:`.protocol`)."""
+evaluations of a saved policy in a background process at low priority (:mod:`.background`), a
+run's evaluation protocol: the same episodes every time, their scores logged (:mod:`.protocol`), and
+where a cloth policy closes its grippers (:mod:`.grasps`)."""
 from .background import BackgroundEvaluation
 from .episodes import (
     COLLECTORS,
@@ -16,6 +17,7 @@ from .episodes import (
     worker_env_fns,
     write_summary_table,
 )
+from .grasps import FAR_CLOSE_CM, grasp_report, summarize_grasps
 from .protocol import EvalConfig, EvalProtocol, RunEnvs, compare_scores, log_scores
 from .expert_scores import (
     ExpertScoreError,
@@ -48,4 +50,7 @@ __all__ = [
     "expert_score_path",
     "read_expert_scores",
     "write_expert_scores",
+    "FAR_CLOSE_CM",
+    "grasp_report",
+    "summarize_grasps",
 ]

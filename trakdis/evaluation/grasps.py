@@ -1,0 +1,64 @@
+"""Where a policy closes its grippers: the diagnosis of a cloth policy's most common failure.
+
+A picker that closes farther from its source corner than the env's grasp reach takes an inner
+vertex or nothing; its corner then stays on the table, and a learned policy that does not open
+again fails the episode (docs/recipes/online_dt.md, "Where the pipeline's teacher fails").
+:func:`grasp_report` reads one played episode (its true ``"state"`` and its ``"action"``, as
+:func:`~trakdis.evaluation.run_episodes` passes them to ``on_episode``) and tells, per picker,
+how far from its corner it first closed and whether the corner was ever lifted.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+from tensordict import TensorDictBase
+
+from trakdis.envs.experts import FOLD_PLAN
+from trakdis.envs.specs import task_spec
+
+# A first close farther than this from the source corner is a miss: the env's grasp reach
+# (``ClothEnv.grasp_radius``, 4 cm) plus half a centimetre for the corner's own motion.
+FAR_CLOSE_CM = 4.5
+# A source corner counts as lifted once it rose this far above its target corner (a folded flap
+# rises 10-20 cm; a corner dragged along the table stays within ~1 cm).
+LIFTED_CM = 3.0
+
+
+def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] | None:
+    """Per picker ``p``: ``picker{p}_first_close_cm`` (distance in cm between the picker and its
+    source corner at the first step whose grasp command is > 0, the env's threshold; NaN if it never
+    closed) and ``picker{p}_corner_lifted`` (whether its source corner ever rose ``LIFTED_CM`` above
+    its target corner). ``episode``: ``[T]`` steps with ``"state"`` (the true reduced state) and
+    ``"action"``. None if the episode carries no ``"state"``."""
+    if "state" not in episode.keys():
+        return None
+    spec = task_spec(task)
+    state, action = episode.get("state"), episode.get("action")
+    if state.shape[-1] != spec.state_dim or action.shape[-1] != spec.action_dim:
+        raise ValueError(f"grasp_report: {task} episodes need state [T, {spec.state_dim}] and action "
+                         f"[T, {spec.action_dim}], got {tuple(state.shape)} and {tuple(action.shape)}")
+    out: dict[str, float | bool] = {}
+    for p, (src, tgt) in enumerate(FOLD_PLAN[task]):
+        picker = state[..., 12 + 3 * p: 15 + 3 * p]
+        corner, target = state[..., 3 * src: 3 * src + 3], state[..., 3 * tgt: 3 * tgt + 3]
+        closes = (action[..., 4 * p + 3] > 0).nonzero()
+        if len(closes):
+            t = int(closes[0, 0])
+            out[f"picker{p}_first_close_cm"] = 100.0 * float((picker[t] - corner[t]).norm())
+        else:
+            out[f"picker{p}_first_close_cm"] = math.nan
+        out[f"picker{p}_corner_lifted"] = bool((corner[..., 2] - target[..., 2]).max() * 100.0 >= LIFTED_CM)
+    return out
+
+
+def summarize_grasps(task: str, reports: Sequence[dict[str, float | bool]]) -> str:
+    """One line over the episodes' :func:`grasp_report` s: the first closes farther than
+    ``FAR_CLOSE_CM`` from their corner, and the episodes with a source corner never lifted."""
+    pickers = range(task_spec(task).num_pickers)
+    firsts = [r[f"picker{p}_first_close_cm"] for r in reports for p in pickers]
+    closed = [d for d in firsts if not math.isnan(d)]
+    far = sum(d > FAR_CLOSE_CM for d in closed)
+    unlifted = sum(not all(r[f"picker{p}_corner_lifted"] for p in pickers) for r in reports)
+    return (f"grasps: {far} of {len(closed)} first closes farther than {FAR_CLOSE_CM:g} cm from their corner; "
+            f"a source corner never lifted in {unlifted} of {len(reports)} episodes")
