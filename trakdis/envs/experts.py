@@ -103,11 +103,7 @@ def expert_action(
     if t.ndim == len(batch) + 1 and t.shape[-1] == 1:
         t = t[..., 0]
     t = np.broadcast_to(t, batch)
-    corners = state[..., :12].reshape(*batch, 4, 3)
-    pickers = state[..., 12:].reshape(*batch, spec.num_pickers, 3)
-    plan = FOLD_PLAN[task]
-    src = np.stack([corners[..., s, :] for s, _ in plan], axis=-2)  # [*B, P, 3]
-    tgt = np.stack([corners[..., g, :] for _, g in plan], axis=-2)
+    pickers, src, tgt = fold_points(task, state)  # [*B, P, 3] each
     tgt_top = tgt + np.array([0.0, 0.0, layer_height])
 
     d_src = np.linalg.norm(pickers - src, axis=-1)  # [*B, P]
@@ -162,6 +158,17 @@ def expert_action(
     pick = np.where(carry, 1.0, -1.0)
     action = np.concatenate([move, pick[..., None]], axis=-1)
     return action.reshape(*batch, spec.action_dim).astype(np.float32)
+
+
+def fold_points(task: str, state):
+    """``(pickers, source corners, target corners)`` of reduced states ``[*B, state_dim]`` (numpy or
+    torch), each ``[*B, num_pickers, 3]``: picker ``p`` carries its source corner onto its target
+    (``FOLD_PLAN``)."""
+    batch = state.shape[:-1]
+    corners = state[..., :12].reshape(*batch, 4, 3)
+    pickers = state[..., 12:].reshape(*batch, task_spec(task).num_pickers, 3)
+    plan = FOLD_PLAN[task]
+    return pickers, corners[..., [s for s, _ in plan], :], corners[..., [g for _, g in plan], :]
 
 
 def add_movement_noise(action: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:

@@ -14,7 +14,7 @@ from typing import Sequence
 
 from tensordict import TensorDictBase
 
-from trakdis.envs.experts import FOLD_PLAN
+from trakdis.envs.experts import fold_points
 from trakdis.envs.specs import task_spec
 
 # A first close farther than this from the source corner is a miss: the env's grasp reach
@@ -38,17 +38,18 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
     if state.shape[-1] != spec.state_dim or action.shape[-1] != spec.action_dim:
         raise ValueError(f"grasp_report: {task} episodes need state [T, {spec.state_dim}] and action "
                          f"[T, {spec.action_dim}], got {tuple(state.shape)} and {tuple(action.shape)}")
+    pickers, corners, targets = fold_points(task, state)  # [T, P, 3] each
+    closed = action.reshape(*action.shape[:-1], spec.num_pickers, 4)[..., 3] > 0  # [T, P]
     out: dict[str, float | bool] = {}
-    for p, (src, tgt) in enumerate(FOLD_PLAN[task]):
-        picker = state[..., 12 + 3 * p: 15 + 3 * p]
-        corner, target = state[..., 3 * src: 3 * src + 3], state[..., 3 * tgt: 3 * tgt + 3]
-        closes = (action[..., 4 * p + 3] > 0).nonzero()
+    for p in range(spec.num_pickers):
+        closes = closed[:, p].nonzero()
         if len(closes):
             t = int(closes[0, 0])
-            out[f"picker{p}_first_close_cm"] = 100.0 * float((picker[t] - corner[t]).norm())
+            out[f"picker{p}_first_close_cm"] = 100.0 * float((pickers[t, p] - corners[t, p]).norm())
         else:
             out[f"picker{p}_first_close_cm"] = math.nan
-        out[f"picker{p}_corner_lifted"] = bool((corner[..., 2] - target[..., 2]).max() * 100.0 >= LIFTED_CM)
+        rise = corners[:, p, 2] - targets[:, p, 2]
+        out[f"picker{p}_corner_lifted"] = bool(rise.max() * 100.0 >= LIFTED_CM)
     return out
 
 
