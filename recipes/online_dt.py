@@ -18,7 +18,7 @@ from trakdis.data import DataConfig, offline_state_buffer
 from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import EvalConfig, RunEnvs, compare_scores
-from trakdis.modules import DTConfig, make_dt_actor
+from trakdis.modules import DTConfig, make_dt_actor, recipe_hidden_action_dims
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle
@@ -79,13 +79,14 @@ def main(argv=None) -> dict:
     run = Run.start("online_dt", OnlineDTConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
     spec = task_spec(cfg.task, horizon=cfg.horizon)
-    dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon)
+    dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon, hidden_action_dims=recipe_hidden_action_dims(cfg.task))
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                               action_eps=dt_cfg.action_eps)
     updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
-              f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len})")
+              f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len}; action dims {list(dt_cfg.hidden_action_dims)} "
+              f"left out of its action tokens)")
     scores = dict.fromkeys(f"{k}_{v}" for k in ("expert", "offline", "final") for v in ("eval", "scores"))
     state = RunState(run, {"updates": 0, "rounds": 0, "best_return": None, "normalizer": None, **scores,
                            "buffer_capacity": cfg.buffer_capacity}, step_key="updates", phases_key="phases", updater=updater)

@@ -13,6 +13,7 @@ def test_task_names_and_shapes():
         spec = task_spec(task)
         assert (spec.num_pickers, spec.state_dim, spec.action_dim, spec.horizon) == (pickers, sdim, adim, 100)
         assert spec.gym_id == f"trakdis/{task}-v0"
+        assert spec.grasp_dims == ((3, 7) if pickers == 2 else (3,))
 
 
 def test_unknown_task_error_names_choices():

@@ -4,7 +4,8 @@ from dt_windows import random_window
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import TanhNormal
 
-from trakdis.modules import CausalTransformer, DTBackbone, StochasticDTActor, DTConfig, TransformerConfig, make_dt_actor
+from trakdis.modules import (CausalTransformer, DTBackbone, StochasticDTActor, DTConfig, TransformerConfig, make_dt_actor,
+                             recipe_hidden_action_dims)
 
 S, A = 5, 3
 
@@ -92,6 +93,36 @@ def test_past_tokens_do_change_predictions():
     td2 = td.clone()
     td2["action"][:, 2] += 0.5
     assert not torch.allclose(run(dt, td2)[:, 3:], run(dt, td)[:, 3:], atol=1e-4)
+
+
+def test_hidden_action_dims_are_not_read_and_the_others_are():
+    torch.manual_seed(0)
+    dt = DTBackbone(small_config(hidden_action_dims=(1,))).eval()
+    td = window()
+    hidden, shown = td.clone(), td.clone()
+    hidden["action"][..., 1] = torch.randn(hidden["action"][..., 1].shape)
+    shown["action"][..., 0] += 0.5
+    torch.testing.assert_close(run(dt, hidden), run(dt, td), rtol=0, atol=0)
+    assert not torch.allclose(run(dt, shown)[:, 1:], run(dt, td)[:, 1:], atol=1e-4)
+    # derived from the config, not saved with the weights: a plain DT's state dict loads into it
+    assert set(dt.state_dict()) == set(DTBackbone(small_config()).state_dict())
+
+
+def test_hidden_action_dims_config():
+    assert DTConfig(18, 8).hidden_action_dims is None  # a DT built directly hides nothing
+    assert DTConfig(18, 8, hidden_action_dims=[3, 7]).hidden_action_dims == (3, 7)  # e.g. from config.json
+    for bad in ((8,), (-1,), (3, 3)):
+        with pytest.raises(ValueError, match="hidden_action_dims"):
+            DTConfig(18, 8, hidden_action_dims=bad)
+    # the recipes fill in the task's grasp dims unless the config sets its own (empty: none)
+    assert DTConfig().for_task(18, 8, 100, hidden_action_dims=(3, 7)).hidden_action_dims == (3, 7)
+    assert DTConfig(hidden_action_dims=()).for_task(18, 8, 100, hidden_action_dims=(3, 7)).hidden_action_dims == ()
+    assert DTConfig().for_task(18, 8, 100).hidden_action_dims == ()
+    with pytest.raises(ValueError, match="hidden_action_dims"):
+        DTConfig(hidden_action_dims=(3, 7)).for_task(15, 4, 100)
+    # the recipes' default: ClothFold's grasp commands; none on the diagonal folds
+    assert recipe_hidden_action_dims("ClothFold") == (3, 7)
+    assert recipe_hidden_action_dims("ClothFoldDiagonalPinned") == recipe_hidden_action_dims("ClothFoldDiagonalUnpinned") == ()
 
 
 def test_padding_content_never_changes_valid_outputs():

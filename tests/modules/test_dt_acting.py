@@ -177,3 +177,20 @@ def test_empty_batch_and_non_finite_inputs_are_refused(actor, mode):
         b = fresh(ok.clone())["action"]
     assert torch.isfinite(a).all()
     torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("mode", ["window", "kv_cache"])
+def test_hidden_action_dims_act_as_in_training(mode):
+    # the acting context keeps the policy's own actions; the hidden dims of them are left out of the
+    # tokens in acting (both modes) as in the training forward
+    torch.manual_seed(0)
+    cfg = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, max_timestep=64,
+                   hidden_action_dims=(2,))
+    hidden_actor = make_dt_actor(cfg, observation_key="state").eval()
+    policy = DTActingPolicy(hidden_actor, mode=mode)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        traj = rollout(policy, 6, 2, {0: (0,), 1: (0,)})
+    for i in range(2):
+        for t in range(min(6, K)):
+            ref, _ = reference_actions(hidden_actor, traj, i, t)
+            torch.testing.assert_close(traj["action"][i, t], ref, rtol=0, atol=1e-5)

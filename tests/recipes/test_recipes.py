@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 
 from trakdis.utils.checkpoint import load_checkpoint
+from trakdis.modules import find_dt_actor
 from trakdis.policies import load_policy
 
 from .conftest import (DATA, HORIZON, RECIPES, _env, distill_args, kill_when, load_recipe, online_dt_args,
@@ -49,6 +50,8 @@ def test_online_dt_files_and_scores(teacher):
     assert len(kept) == 2 and kept.between(0, 2).all() and ck["buffer"]["online"].sum() <= kept.sum()
     handle = load_policy(teacher)
     assert handle.kind == "teacher" and handle.horizon == HORIZON and handle.observation_key == "state"
+    # the grasp commands are left out of the DT's action tokens (--model.hidden-action-dims, default: the task's)
+    assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7) == load_checkpoint(teacher / "policy.pt")["dt_config"]["hidden_action_dims"]
     assert cv2.imread(str(teacher / "curves.png")) is not None
     # the phase table: expert 2, offline 2, rollouts 2 x 2, after round 1 (--eval-every 1) 2, final 2 episodes
     phases = json.loads((teacher / "phases.json").read_text())
@@ -169,6 +172,7 @@ def test_distill_files_and_resume(workdir, student):
     assert frame["eval/normalized_performance"].notna().sum() == 3  # before, after round 1, at the end
     handle = load_policy(student)
     assert handle.kind == "student" and handle.observation_key == "state_estimate" and handle.encoder is not None
+    assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7)  # the teacher's architecture
     run_recipe(workdir, "distill", *distill_args("student2", "--stop-after", 1))
     out = run_recipe(workdir, "distill", "--resume", "--name", "student2")
     assert "from step 2" in out.stdout

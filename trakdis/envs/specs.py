@@ -67,6 +67,11 @@ class TaskSpec:
     gym_id: str
 
     @property
+    def grasp_dims(self) -> tuple[int, ...]:
+        """The action dims of the pickers' grasp commands (``pick``, the 4th of each picker's 4)."""
+        return tuple(range(3, self.action_dim, 4))
+
+    @property
     def state_groups(self) -> dict[str, slice]:
         """The reduced state's parts: ``corners`` (dims 0-11) and ``pickers`` (the rest), xyz each."""
         return {"corners": slice(0, 12), "pickers": slice(12, self.state_dim)}

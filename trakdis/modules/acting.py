@@ -180,7 +180,7 @@ class DTActingPolicy(TensorDictModuleBase):
         t_now = dtm.embed_timestep(step_count)
         tokens = torch.stack(
             (
-                dtm.embed_action(a_prev) + dtm.embed_timestep(ts_prev),
+                dtm.embed_past_action(a_prev) + dtm.embed_timestep(ts_prev),
                 dtm.embed_return(rtg) + t_now,
                 dtm.embed_state(obs) + t_now,
             ),

@@ -23,7 +23,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from trakdis.modules.transformer import CausalTransformer, Dropout, KVCache, TransformerConfig
 
-__all__ = ["DTConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor"]
+__all__ = ["DTConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor", "recipe_hidden_action_dims"]
 
 TOKENS_PER_STEP = 3  # (return-to-go, state, action)
 
@@ -76,6 +76,12 @@ class DTConfig:
     (action_eps), so the policy's own mean actions, written back as online targets, map back to the same
     pre-tanh value (docs/recipes/online_dt.md)"""
 
+    hidden_action_dims: Optional[tuple[int, ...]] = None
+    """action dims left out of the action tokens (zeroed before embedding): the DT does not read them in
+    its own past actions (None: the recipes' default, the grasp commands on ClothFold, where a DT that reads
+    them learns to repeat them and seldom starts a grasp itself, and none on the diagonal folds, where
+    hiding them lowered the student; a DT built directly hides none; empty: none; docs/recipes/online_dt.md)"""
+
     PAPER_SIZES: ClassVar[dict] = {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30, "dropout": 0.1}
     """The TraKDis paper's sizes (:meth:`paper`, the recipes' ``--preset paper``)."""
 
@@ -90,6 +96,12 @@ class DTConfig:
             raise ValueError(f"init_log_std={self.init_log_std} must lie strictly inside ({self.log_std_min}, {self.log_std_max})")
         if self.loc_bound < 0:
             raise ValueError(f"loc_bound={self.loc_bound} must be >= 0 (0: unbounded)")
+        if self.hidden_action_dims is not None:
+            self.hidden_action_dims = tuple(int(d) for d in self.hidden_action_dims)
+            bad = [d for d in self.hidden_action_dims if d < 0 or (self.action_dim is not None and d >= self.action_dim)]
+            if bad or len(set(self.hidden_action_dims)) != len(self.hidden_action_dims):
+                raise ValueError(f"DTConfig.hidden_action_dims={self.hidden_action_dims} must be distinct action dims "
+                                 f"in [0, action_dim={self.action_dim})")
         self.transformer_config()  # validates embed_dim/n_head/activation/dropouts
 
     @property
@@ -105,12 +117,16 @@ class DTConfig:
         kwargs.update(overrides)
         return cls(state_dim=state_dim, action_dim=action_dim, **kwargs)
 
-    def for_task(self, state_dim: int, action_dim: int, horizon: int) -> "DTConfig":
+    def for_task(self, state_dim: int, action_dim: int, horizon: int,
+                 hidden_action_dims: tuple[int, ...] = ()) -> "DTConfig":
         """A copy (``dataclasses.replace``) for a task: its observation and action widths, a
-        timestep table of at least ``horizon + 1`` entries, and the attention dropout written out."""
+        timestep table of at least ``horizon + 1`` entries, the attention dropout written out, and
+        ``hidden_action_dims`` (the recipes: the task's grasp commands, ``TaskSpec.grasp_dims``)
+        unless this config sets its own."""
         return dataclasses.replace(
             self, state_dim=state_dim, action_dim=action_dim, max_timestep=max(self.max_timestep, horizon + 1),
-            attn_dropout=self.dropout if self.attn_dropout is None else self.attn_dropout)
+            attn_dropout=self.dropout if self.attn_dropout is None else self.attn_dropout,
+            hidden_action_dims=tuple(hidden_action_dims) if self.hidden_action_dims is None else self.hidden_action_dims)
 
     def transformer_config(self) -> TransformerConfig:
         return TransformerConfig(
@@ -125,6 +141,20 @@ class DTConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+# Tasks whose DTs the recipes train with the grasp commands left out of the action tokens (measured,
+# docs/recipes/online_dt.md: on ClothFold the teacher copied its previous grasp token and missed the first
+# close in 86-94% of its demonstrations; on the diagonal folds it did not, and hiding it lowered the student)
+HIDDEN_GRASP_TASKS = ("ClothFold",)
+
+
+def recipe_hidden_action_dims(task: str) -> tuple[int, ...]:
+    """The recipes' default ``DTConfig.hidden_action_dims`` for ``task``: its grasp commands
+    (``TaskSpec.grasp_dims``) if it is in :data:`HIDDEN_GRASP_TASKS`, else none."""
+    from trakdis.envs.specs import task_spec
+
+    return task_spec(task).grasp_dims if task in HIDDEN_GRASP_TASKS else ()
 
 
 class DTBackbone(nn.Module):
@@ -159,6 +189,17 @@ class DTBackbone(nn.Module):
             nn.init.normal_(lin.weight, std=0.02)
             nn.init.zeros_(lin.bias)
         nn.init.normal_(self.embed_timestep.weight, std=0.02)
+        hidden = list(config.hidden_action_dims or ())
+        keep = torch.ones(config.action_dim)
+        keep[hidden] = 0.0
+        # derived from the config, so not saved with the weights
+        self.register_buffer("action_token_keep", keep if hidden else None, persistent=False)
+
+    def embed_past_action(self, action: torch.Tensor) -> torch.Tensor:
+        """The action token's embedding, without ``DTConfig.hidden_action_dims`` (zeroed)."""
+        if self.action_token_keep is not None:
+            action = action * self.action_token_keep
+        return self.embed_action(action)
 
     # -- input checks ---------------------------------------------------------------------
     def _check(self, observation, action, return_to_go, timestep, mask) -> None:
@@ -205,7 +246,8 @@ class DTBackbone(nn.Module):
     def embed_step(self, observation, action, return_to_go, timestep) -> torch.Tensor:
         """Embed steps ``[..., *]`` to tokens ``[..., 3, D]`` ordered (R, s, a), before the LayerNorm."""
         t = self.embed_timestep(timestep)
-        tokens = torch.stack((self.embed_return(return_to_go), self.embed_state(observation), self.embed_action(action)), dim=-2)
+        tokens = torch.stack((self.embed_return(return_to_go), self.embed_state(observation), self.embed_past_action(action)),
+                             dim=-2)
         return tokens + t.unsqueeze(-2)  # one broadcast add (and one reduction backward) for the 3 tokens
 
     def forward(
