@@ -285,8 +285,12 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
                     "log_std_min": -2.5}
     dt = config_from_dict(module.OnlineDTConfig, old).model.for_task(18, 8, horizon=6)
     assert dt == DTConfig(state_dim=18, action_dim=8, embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.1,
-                          attn_dropout=0.1, loc_bound=5.0, log_std_min=-2.5, max_timestep=1024)
+                          attn_dropout=0.1, loc_bound=5.0, log_std_min=-2.5, max_timestep=1024, hidden_action_dims=())
     assert DTConfig(**dt.to_dict()) == dt  # a policy file's dt_config
+    # an old section has no hidden_action_dims: the recipe's default for the task applies (docs/design.md)
+    old_model = config_from_dict(module.OnlineDTConfig, old).model
+    assert old_model.hidden_action_dims is None
+    assert old_model.for_task(18, 8, horizon=6, hidden_action_dims=(3, 7)).hidden_action_dims == (3, 7)
 
 
 @pytest.mark.parametrize("recipe,args,message", [
