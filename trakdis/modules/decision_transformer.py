@@ -121,8 +121,8 @@ class DTConfig:
                  hidden_action_dims: tuple[int, ...] = ()) -> "DTConfig":
         """A copy (``dataclasses.replace``) for a task: its observation and action widths, a
         timestep table of at least ``horizon + 1`` entries, the attention dropout written out, and
-        ``hidden_action_dims`` (the recipes: the task's grasp commands, ``TaskSpec.grasp_dims``)
-        unless this config sets its own."""
+        ``hidden_action_dims`` unless this config sets its own (the recipes pass
+        :func:`recipe_hidden_action_dims`)."""
         return dataclasses.replace(
             self, state_dim=state_dim, action_dim=action_dim, max_timestep=max(self.max_timestep, horizon + 1),
             attn_dropout=self.dropout if self.attn_dropout is None else self.attn_dropout,
