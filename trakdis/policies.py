@@ -54,12 +54,15 @@ __all__ = [
 # --------------------------------------------------------------------------- acting environments
 def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale: float = 1.0,
                     encoder: nn.Module | None = None, state_noise: float = 0.0, noise_seed: int | None = None,
-                    video_size: int | None = None, encoder_key: str = "state_estimate", **batched_kwargs):
+                    video_size: int | None = None, encoder_key: str = "state_estimate", picker_odometry: bool = False,
+                    **batched_kwargs):
     """A batched env with the acting transforms of a DT policy.
 
     ``encoder`` (student): ``EncoderTransform`` writes ``"state_estimate"`` from ``"pixels"``
     (pixels are switched on); ``state_noise`` adds Gaussian noise to ``"state_estimate"``
     (``"state"`` for a teacher); ``target_return`` adds the ``ReturnToGo`` countdown.
+    ``picker_odometry`` (with an encoder): ``PickerOdometry`` fuses the estimate's pickers with the
+    actions sent, before the noise.
     ``encoder_key``: where the encoder writes (an image baseline's trunk: ``"image_features"``;
     the state noise then goes there too).
 
@@ -69,7 +72,7 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
     """
     from torchrl.envs import Compose, TransformedEnv
 
-    from trakdis.transforms import EncoderTransform, ImageResize, ReturnToGo, StateNoise
+    from trakdis.transforms import EncoderTransform, ImageResize, PickerOdometry, ReturnToGo, StateNoise
 
     if not (math.isfinite(state_noise) and state_noise >= 0):  # -1 or nan were skipped silently
         raise ValueError(f"state_noise must be a finite std >= 0, got {state_noise!r}")
@@ -85,6 +88,11 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
     env = make_batched_env(task, **batched_kwargs)
     if encoder is not None:
         transforms.append(EncoderTransform(encoder, in_keys=[agent_key], out_keys=[encoder_key]))
+        if picker_odometry:
+            transforms.append(PickerOdometry.for_task(task, batched_kwargs.get("env_kwargs"), in_keys=[encoder_key],
+                                                      image_size=batched_kwargs.get("image_size", 32) if video_size is None else agent_size))
+    elif picker_odometry:
+        raise ValueError("picker_odometry fuses an encoder's estimates: it needs an encoder")
     if state_noise > 0:
         key = encoder_key if encoder is not None else "state"
         transforms.append(StateNoise(state_noise, in_keys=[key], seed=noise_seed))
@@ -176,6 +184,8 @@ class PolicyHandle:
     """standardisation of the observation the DT reads (None: raw)"""
     proprio_dims: tuple = ()
     """dims of the student's estimate taken from the true state (picker positions), if any"""
+    picker_odometry: bool = False
+    """the student's picker estimates fused with its own commands (``PickerOdometry`` in its env)"""
 
     @property
     def uses_pixels(self) -> bool:
@@ -195,6 +205,7 @@ class PolicyHandle:
             num_envs=num_envs, parallel=parallel, seed=seed, split=split,
             from_pixels=bool(from_pixels) or self.uses_pixels, image_size=image_size,
             env_kwargs={"horizon": self.horizon, **self.env_kwargs}, video_size=video_size,
+            picker_odometry=self.picker_odometry and self.encoder is not None,
             **({"encoder_key": self.observation_key} if self.kind in IMAGE_POLICY_KINDS else {}),
         )
 
@@ -227,14 +238,15 @@ class PolicyHandle:
 
 def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_copy: bool = True,
                           normalizer_keys: tuple[str, ...] = ("state_estimate",), proprio_dims: tuple = (),
-                          device: str = "cpu") -> tuple[PolicyHandle, Any]:
+                          picker_odometry: bool = False, device: str = "cpu") -> tuple[PolicyHandle, Any]:
     """The TraKDis student of a loaded ``teacher`` and its :class:`~trakdis.modules.DTConfig`.
 
     A DT of the teacher's sizes reading ``"state_estimate"`` (``encoder``'s estimate from the
     image, run in the acting env), starting as a copy of the teacher's weights (``weight_copy``;
     else fresh weights), acting with the teacher's return-to-go, env options and state statistics
     (a normaliser of ``normalizer_keys``); ``proprio_dims``: dims of the estimate taken from the
-    true state when acting."""
+    true state when acting; ``picker_odometry``: the estimate's pickers fused with the student's own
+    commands (``PickerOdometry``) when acting."""
     from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
 
     dt_cfg = DTConfig(**load_checkpoint(teacher.source)["dt_config"])
@@ -246,7 +258,7 @@ def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_c
                           observation_key="state_estimate", target_return=teacher.target_return,
                           rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
                           normalizer=None if norm is None else norm.with_keys(normalizer_keys),
-                          proprio_dims=tuple(proprio_dims))
+                          proprio_dims=tuple(proprio_dims), picker_odometry=picker_odometry)
     return handle, dt_cfg
 
 
@@ -363,7 +375,7 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         observation_key=data["observation_key"], target_return=data["target_return"],
         rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
         normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
-        proprio_dims=tuple(data.get("proprio_dims") or ()),
+        proprio_dims=tuple(data.get("proprio_dims") or ()), picker_odometry=bool(data.get("picker_odometry", False)),
     )
 
 

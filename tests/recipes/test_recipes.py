@@ -201,12 +201,17 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     rounds = frame[frame["round"].notna()]
     assert rounds["rollout/teacher_normalized_performance"].notna().tolist() == [True, False]
     assert rounds["rollout/student_normalized_performance"].notna().tolist() == [False, True]
-    # the expert dataset alone, with the teacher's labels
+    # the expert dataset alone, with the teacher's labels; the pickers fused with the commands
     out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
-                                                        "--no-eval-teacher", "--eval-every", 0, *DATA))
+                                                        "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", *DATA))
     assert "--expert-data" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "offline")
     assert frame["train/loss_distill"].notna().sum() == 2 and not any(c.startswith("rollout/") for c in frame.columns)
+    assert frame["eval/normalized_performance"].notna().sum() == 2  # acted with PickerOdometry in its env
+    handle = load_policy(workdir / "runs" / "distill" / "offline")
+    assert handle.picker_odometry and load_checkpoint(workdir / "runs" / "distill" / "offline" / "policy.pt")["picker_odometry"]
+    env = handle.make_env()  # not started: nothing to close
+    assert any(type(t).__name__ == "PickerOdometry" for t in env.transform)
     # --episodes-per-round 0 --no-expert-data: refused while parsing (test_bad_options_are_refused_...)
 
 
@@ -300,6 +305,8 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("online_dt", ["--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),
     ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
+    ("distill", ["--picker-odometry", "--proprio-pickers"], r"two sources of the pickers"),
+    ("distill", ["--picker-odometry", "--data.action-labels", "expert"], r"integrates the executed actions"),
 ])
 def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, capsys, recipe, args, message):
     # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored

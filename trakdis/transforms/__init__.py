@@ -1,11 +1,12 @@
 """TorchRL transforms for TraKDis: image resizing, frozen-encoder state estimation, return-to-go, noise;
-state standardisation, out-of-view picker masking and the proprioception override (TensorDict callables); image augmentation
+state standardisation, out-of-view picker masking and the proprioception override; picker odometry (the encoder's picker estimates fused with the policy's own commands) (TensorDict callables); image augmentation
 with consistent label transforms (``random_shift``, ``random_flip``, ``horizontal_flip``, ``mirror_state``)."""
 
 from .augment import horizontal_flip, mirror_state, random_flip, random_shift
 from .encoder import EncoderTransform
 from .image import ImageResize, resize_images
 from .noise import StateNoise
+from .odometry import PickerOdometry
 from .normalization import ProprioceptionOverride, StateNormalizer, chain
 from .return_to_go import ReturnToGo, hindsight_return_to_go
 from .visibility import OutOfViewFill, fixed_camera_matrix
@@ -14,6 +15,7 @@ __all__ = [
     "EncoderTransform",
     "ImageResize",
     "OutOfViewFill",
+    "PickerOdometry",
     "ProprioceptionOverride",
     "ReturnToGo",
     "StateNoise",
