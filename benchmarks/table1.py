@@ -11,7 +11,7 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
 * the teacher (``online_dt.py``, ``--teacher-args``), the encoder (``train_encoder.py``,
   ``--encoder-args``) and the student (``distill.py``, ``--student-args``): the full method, TraKDis;
 * the ablations: No-Aug (the student on an encoder trained with ``--no-aug``: no random shift, no
-  flip), No-Pretrain (``distill.py --no-weight-copy``), No-Distill (``distill.py --no-distill``);
+  flip; the default encoder shifts no more since stop 32, so No-Aug now removes the flip alone), No-Pretrain (``distill.py --no-weight-copy``), No-Distill (``distill.py --no-distill``);
 * the baselines: BC-image (``bc_image.py``, ``--bc-args``) and DT-image (``dt_image.py``,
   ``--dt-image-args``);
 * ``evaluate.py`` for each of them and for the scripted expert: ``--trials`` eval-split episodes,

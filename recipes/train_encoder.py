@@ -38,9 +38,9 @@ class TrainEncoderConfig(RunConfig):
     batch_size: int = 128  # images per update
     lr: float = 1e-3  # learning rate (AdamW)
     weight_decay: float = 1e-4  # weight decay
-    aug: bool = True  # augment (random shift + label-consistent horizontal flip) while training
+    aug: bool = True  # augment (label-consistent horizontal flip; random shift if --pad > 0) while training
     flip_prob: float = 0.5  # probability of the mirrored image
-    pad: int = 2  # random-shift padding in pixels
+    pad: int = 0  # random-shift padding in pixels (0: none; a shift keeps the labels, so the encoder learns to ignore position)
     channels: tuple[int, ...] = (32, 32, 32, 32)  # channels of the 4 conv layers
     hidden_dim: int = 256  # width of the MLP head
     head: str = "flatten"  # encoder head: 'flatten' (conv features -> MLP) or 'keypoints' (spatial soft-argmax)

@@ -66,6 +66,8 @@ def test_encoder_loss_with_perfect_encoder_is_zero_under_flip_and_not_with_wrong
     assert wrong(td)["loss_encoder"] > 1.0
     # no mirror given: no flip, still exact
     assert EncoderLoss(DotDecoder(), pad=0)(td)["loss_encoder"].item() == 0.0
+    # the default does not shift: the labels of an image stay its own (only the flip transforms them)
+    assert EncoderLoss(DotDecoder(), flip_prob=0.0)(td)["loss_encoder"].item() == 0.0
 
 
 def test_random_shift_translates_and_keeps_labels_within_pad():

@@ -40,7 +40,9 @@ class EncoderLoss(LossModule):
         state_mirror: ``(perm, sign)`` or None.
         augment: enable augmentation (in training mode).
         flip_prob: probability of the mirror flip.
-        pad: random-shift padding in pixels (0 disables the shift).
+        pad: random-shift padding in pixels; 0 (default) disables the shift. A shift moves the scene
+            in the image while the state labels stay, so it trains the encoder to ignore where things
+            are (measured: docs/recipes/train_encoder.md); the flip transforms its labels, the shift cannot.
         in_key, target_key: set the ``pixels`` / ``state`` keys (also via ``set_keys``).
 
     Returns ``loss_encoder`` (MSE) and metric ``mae`` (detached), both averaged over batch and dims.
@@ -68,7 +70,7 @@ class EncoderLoss(LossModule):
         state_mirror: tuple[Sequence[int], Sequence[float]] | None = None,
         augment: bool = True,
         flip_prob: float = 0.5,
-        pad: int = 2,
+        pad: int = 0,
         in_key: NestedKey = "pixels",
         target_key: NestedKey = "state",
     ) -> None:
