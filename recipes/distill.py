@@ -34,7 +34,7 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
     state_noise: float = 0.0  # std of Gaussian noise on the estimated state of every training window (robustness)
     proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
-    picker_odometry: bool = False  # the encoder's picker estimates fused with the student's own commands (no proprioception)
+    picker_odometry: bool = True  # the encoder's picker estimates fused with the student's own commands (no proprioception; off: the paper's per-image estimate)
     act: Literal["student", "teacher", "mixed"] = "teacher"  # who acts in the rollouts (student: DAgger; mixed: decaying)
     teacher_context: Literal["window", "step"] = "window"  # what the teacher reads to label a step: window or step alone
     expert_data: bool = True  # distil on the expert dataset's episodes (--data.*): images through the encoder
@@ -59,11 +59,9 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
         if self.episodes_per_round < 0 or (self.distill and self.episodes_per_round == 0 and not self.expert_data):
             raise ValueError(f"--episodes-per-round {self.episodes_per_round}: distillation needs rollouts (>= 1) "
                              "or --expert-data")
-        if self.picker_odometry and self.proprio_pickers:
-            raise ValueError("--picker-odometry and --proprio-pickers are two sources of the pickers: choose one")
-        if self.picker_odometry and self.data.action_labels != "executed":
-            raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
-                             f"{self.data.action_labels!r} must be 'executed'")
+        if self.picker_odometry and not self.proprio_pickers and self.data.action_labels != "executed":
+            raise ValueError(f"--picker-odometry (the default) integrates the executed actions: --data.action-labels "
+                             f"{self.data.action_labels!r} needs 'executed', or --no-picker-odometry")
 
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,
@@ -80,9 +78,10 @@ def main(argv=None) -> dict:
     # Teacher and student read states standardised with the teacher's statistics (the student's
     # weights start as the teacher's, and the encoder's estimates live in state units).
     proprio_dims = tuple(range(12, task_spec(task).state_dim)) if cfg.proprio_pickers else ()
+    odometry = cfg.picker_odometry and not cfg.proprio_pickers  # proprioception gives the pickers outright
     student_handle, dt_cfg = weight_copied_student(teacher, encoder, weight_copy=cfg.weight_copy, device=cfg.device,
                                                    normalizer_keys=("state", "state_estimate"), proprio_dims=proprio_dims,
-                                                   picker_odometry=cfg.picker_odometry)
+                                                   picker_odometry=odometry)
     student, normalizer = student_handle.actor, student_handle.normalizer
     teacher.actor.eval().requires_grad_(False)
     run.print(f"{task}: teacher {teacher.source}, encoder {enc_path} (val MAE {enc_file.get('val_mae', float('nan')):.4f}), "
@@ -108,9 +107,9 @@ def main(argv=None) -> dict:
         keys = ("action", "reward", *(("state",) if cfg.proprio_pickers or cfg.distill else ()))
         data, lengths, path = load_encoded_dataset(cfg.data, encoder, task=task, horizon=horizon, seed=cfg.seed,
                                                    keys=keys, log=run.print, progress=cfg.progress)
-        if cfg.picker_odometry:  # what the student reads when acting: the fused pickers
-            odometry = PickerOdometry.for_task(task, teacher.env_kwargs)
-            data.set("state_estimate", odometry.filter(data["state_estimate"], data["action"]))
+        if odometry:  # what the student reads when acting: the fused pickers
+            fuse = PickerOdometry.for_task(task, teacher.env_kwargs)
+            data.set("state_estimate", fuse.filter(data["state_estimate"], data["action"]))
         buffer.load_offline(data, lengths)
         run.print(f"{'--expert-data' if cfg.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
 
@@ -122,7 +121,7 @@ def main(argv=None) -> dict:
 
     eval_env = cfg.make_env(student_handle)
     # its rollouts carry the estimate too (fused the student's way)
-    teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder, picker_odometry=cfg.picker_odometry)
+    teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder, picker_odometry=odometry)
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
               "mixed": [teacher_actor_handle, student_handle]}[cfg.act] if cfg.distill and cfg.episodes_per_round else []
     # Rollouts carry both the true state and the encoder's estimate (--state-noise: the buffer adds it).
@@ -160,7 +159,7 @@ def main(argv=None) -> dict:
     student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
                                "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims),
-                               "picker_odometry": cfg.picker_odometry})
+                               "picker_odometry": odometry})
     state.finish()
     scores = [f"{k} {'not evaluated' if state[v] is None else format(state[v], '.3f')}"
               for k, v in (("teacher", "teacher_eval"), ("student before", "initial_eval"), ("after", "final_eval"))]
