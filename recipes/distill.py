@@ -34,7 +34,7 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
     state_noise: float = 0.0  # std of Gaussian noise on the estimated state of every training window (robustness)
     proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
-    picker_odometry: bool = True  # the encoder's picker estimates fused with the student's own commands (no proprioception; off: the paper's per-image estimate)
+    picker_odometry: bool = False  # the encoder's picker estimates fused with the student's own commands (no proprioception)
     act: Literal["student", "teacher", "mixed"] = "teacher"  # who acts in the rollouts (student: DAgger; mixed: decaying)
     teacher_context: Literal["window", "step"] = "window"  # what the teacher reads to label a step: window or step alone
     expert_data: bool = True  # distil on the expert dataset's episodes (--data.*): images through the encoder
@@ -60,8 +60,8 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
             raise ValueError(f"--episodes-per-round {self.episodes_per_round}: distillation needs rollouts (>= 1) "
                              "or --expert-data")
         if self.picker_odometry and not self.proprio_pickers and self.data.action_labels != "executed":
-            raise ValueError(f"--picker-odometry (the default) integrates the executed actions: --data.action-labels "
-                             f"{self.data.action_labels!r} needs 'executed', or --no-picker-odometry")
+            raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
+                             f"{self.data.action_labels!r} needs 'executed'")
 
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,

@@ -191,7 +191,7 @@ def test_distill_ablations(workdir, teacher, encoder):
     assert ck["distill"] is False and ck["weight_copy"] is False and ck["state_noise"] == 1e-3
     assert ck["proprio_dims"] == list(range(12, 18))  # ClothFold: two pickers after the 4 corners
     assert load_policy(workdir / "runs" / "distill" / "ablation").proprio_dims == tuple(range(12, 18))
-    assert ck["picker_odometry"] is False  # proprioception gives the pickers: no odometry
+    assert ck["picker_odometry"] is False  # off by default, and proprioception gives the pickers anyway
 
 
 def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
@@ -306,7 +306,7 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("online_dt", ["--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),
     ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
-    ("distill", ["--data.action-labels", "expert"], r"integrates the executed actions"),
+    ("distill", ["--picker-odometry", "--data.action-labels", "expert"], r"integrates the executed actions"),
 ])
 def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, capsys, recipe, args, message):
     # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
