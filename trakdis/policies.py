@@ -76,10 +76,9 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
 
     if not (math.isfinite(state_noise) and state_noise >= 0):  # -1 or nan were skipped silently
         raise ValueError(f"state_noise must be a finite std >= 0, got {state_noise!r}")
-    agent_key = "pixels"
+    agent_key, agent_size = "pixels", batched_kwargs.get("image_size", 32)  # what the encoder reads
     transforms = []
     if video_size is not None:
-        agent_size = batched_kwargs.get("image_size", 32)
         batched_kwargs.update(from_pixels=True, image_size=int(video_size))
         agent_key = "pixels_agent"
         transforms.append(ImageResize(in_keys=["pixels"], out_keys=[agent_key], size=agent_size))
@@ -90,7 +89,7 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
         transforms.append(EncoderTransform(encoder, in_keys=[agent_key], out_keys=[encoder_key]))
         if picker_odometry:
             transforms.append(PickerOdometry.for_task(task, batched_kwargs.get("env_kwargs"), in_keys=[encoder_key],
-                                                      image_size=batched_kwargs.get("image_size", 32) if video_size is None else agent_size))
+                                                      image_size=agent_size))
     elif picker_odometry:
         raise ValueError("picker_odometry fuses an encoder's estimates: it needs an encoder")
     if state_noise > 0:

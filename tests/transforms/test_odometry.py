@@ -137,6 +137,8 @@ def test_bad_inputs_name_what_is_wrong():
         odometry._step(step_in, step_in.clone())
     with pytest.raises(RuntimeError, match="along an episode"):
         odometry(step_in)
+    with pytest.raises(ValueError, match="one estimate key"):
+        PickerOdometry([0], in_keys=["a", "b"])
     with pytest.raises(ValueError, match="low < high"):
         PickerOdometry([0], low=(0, 0, 0), high=(1, 1, 0))
     with pytest.raises(ValueError, match="needs an encoder"):

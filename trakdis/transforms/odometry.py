@@ -47,7 +47,8 @@ class PickerOdometry(Transform):
         starts: the state dims where each picker's xyz starts (``[12, 15]`` on ClothFold).
 
     Keyword Args:
-        in_keys: the estimate(s) to filter in place (default ``["state_estimate"]``).
+        in_keys: the one estimate to filter in place (default ``["state_estimate"]``; one key, since one
+            ``count_key`` goes with it).
         action_key: the action entry (``[*B, num_pickers * action_stride]``).
         action_stride: action dims per picker; its first three are the xyz move (default 4).
         move_per_substep, action_repeat: the env's picker motion (:class:`~trakdis.envs.ClothEnv`).
@@ -63,6 +64,8 @@ class PickerOdometry(Transform):
                  high: Sequence[float] = (0.4, 0.4, 0.3), camera_matrix=None, image_size: int = 32,
                  count_key: NestedKey = "picker_odometry_count"):
         in_keys = ["state_estimate"] if in_keys is None else list(in_keys)
+        if len(in_keys) != 1:
+            raise ValueError(f"PickerOdometry: one estimate key (one count_key goes with it), got in_keys {in_keys}")
         super().__init__(in_keys=in_keys, out_keys=list(in_keys))
         self.starts = [int(s) for s in starts]
         if not self.starts or min(self.starts) < 0:
@@ -95,7 +98,8 @@ class PickerOdometry(Transform):
         spec, kwargs = task_spec(task), dict(env_kwargs or {})
         defaults = inspect.signature(ClothEnv.__init__).parameters
         motion = {k: kwargs.get(k, defaults[k].default) for k in ("move_per_substep", "action_repeat")}
-        return cls(list(range(12, spec.state_dim, 3)), in_keys=in_keys, action_stride=spec.action_dim // spec.num_pickers,
+        pickers = spec.state_groups["pickers"]
+        return cls(list(range(pickers.start, pickers.stop, 3)), in_keys=in_keys, action_stride=spec.action_dim // spec.num_pickers,
                    low=WORKSPACE_LOW.tolist(), high=WORKSPACE_HIGH.tolist(),
                    camera_matrix=fixed_camera_matrix(image_size), image_size=image_size, **motion)
 
@@ -156,31 +160,31 @@ class PickerOdometry(Transform):
     def _reset(self, tensordict: TensorDictBase | None, tensordict_reset: TensorDictBase) -> TensorDictBase:
         # A fresh episode starts from the encoder's first view (one view fused). On a partial reset
         # the envs that go on keep their fused estimate and count.
-        for key in self.in_keys:
-            est = tensordict_reset.get(key)
-            count = torch.ones(est.shape[:-1] + (len(self.starts),), device=est.device)
-            reset = None if tensordict is None else tensordict.get("_reset", None)
-            if reset is not None and key in tensordict.keys(True) and self.count_key in tensordict.keys(True):
-                keep = ~reset.reshape(est.shape[:-1]).bool()
-                est = torch.where(keep.unsqueeze(-1), tensordict.get(key).to(est.dtype), est)
-                count = torch.where(keep.unsqueeze(-1), tensordict.get(self.count_key).to(count.dtype), count)
-            tensordict_reset.set(key, est)
-            tensordict_reset.set(self.count_key, count)
+        key = self.in_keys[0]
+        est = tensordict_reset.get(key)
+        count = torch.ones(est.shape[:-1] + (len(self.starts),), device=est.device)
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        if reset is not None and key in tensordict.keys(True) and self.count_key in tensordict.keys(True):
+            keep = ~reset.reshape(est.shape[:-1]).bool()
+            est = torch.where(keep.unsqueeze(-1), tensordict.get(key).to(est.dtype), est)
+            count = torch.where(keep.unsqueeze(-1), tensordict.get(self.count_key).to(count.dtype), count)
+        tensordict_reset.set(key, est)
+        tensordict_reset.set(self.count_key, count)
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key, None)
         if action is None:
             raise KeyError(f"PickerOdometry: {self.action_key!r} is missing from the step input")
-        for key in self.in_keys:
-            previous, count = tensordict.get(key, None), tensordict.get(self.count_key, None)
-            if previous is None or count is None:
-                raise KeyError(f"PickerOdometry: {key!r} or {self.count_key!r} is missing from the step input; "
-                               "was the env reset through this TransformedEnv?")
-            observed = next_tensordict.get(key)
-            pickers, count = self.fuse(self._pickers(previous.float()), count, action.float(), self._pickers(observed))
-            next_tensordict.set(key, self._write(observed, pickers))
-            next_tensordict.set(self.count_key, count)
+        key = self.in_keys[0]
+        previous, count = tensordict.get(key, None), tensordict.get(self.count_key, None)
+        if previous is None or count is None:
+            raise KeyError(f"PickerOdometry: {key!r} or {self.count_key!r} is missing from the step input; "
+                           "was the env reset through this TransformedEnv?")
+        observed = next_tensordict.get(key)
+        pickers, count = self.fuse(self._pickers(previous.float()), count, action.float(), self._pickers(observed))
+        next_tensordict.set(key, self._write(observed, pickers))
+        next_tensordict.set(self.count_key, count)
         return next_tensordict
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
