@@ -137,7 +137,8 @@ PRESETS = {"quick": {
     "seeds": 1,
     "trials": 20,
     "encoder_args": "--epochs 5",
-    "student_args": "--rounds 4 --updates-per-round 25 --eval-every 2 --eval-episodes 10 --no-eval-teacher",
+    "student_args": "--rounds 4 --updates-per-round 25 --eval-every 2 --eval-episodes 10 --select-episodes 10 "
+                    "--no-eval-teacher",
     "bc_args": "--epochs 5",
     "dt_image_args": "--updates 300",
     "noise_levels": (),  # no robustness study (add it with --noise-levels 0 1e-3 1e-2 ...)

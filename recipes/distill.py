@@ -19,7 +19,7 @@ from trakdis.evaluation import EvalConfig, RunEnvs, run_episodes
 from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
 from trakdis.policies import load_teacher_and_encoder, weight_copied_student
-from trakdis.training import mixture_shares, train_rounds
+from trakdis.training import SnapshotSelection, mixture_shares, train_rounds
 from trakdis.transforms import PickerOdometry
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -52,6 +52,9 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     data: DataConfig = field(default_factory=DataConfig)  # expert dataset for --no-distill and --expert-data
     eval_episodes: int = 10  # evaluation episodes (eval split, the same configurations every time; 0: none)
     eval_every: int = 5  # also evaluate every N rounds (0: only before the rounds and at the end)
+    select_episodes: int = 30  # train-split episodes scoring the copy and every --select-every rounds' student (0: keep the last)
+    select_every: int = 5  # rounds between the scored snapshots (and the last); a later one is kept only if measurably better
+    select_margin: float = 1.0  # standard errors of the paired gain by which a snapshot must beat the one kept so far
     eval_teacher: bool = True  # also evaluate the teacher on the evaluation episodes
     parallel: bool = False  # step the envs in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)
 
@@ -59,6 +62,9 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
         if self.episodes_per_round < 0 or (self.distill and self.episodes_per_round == 0 and not self.expert_data):
             raise ValueError(f"--episodes-per-round {self.episodes_per_round}: distillation needs rollouts (>= 1) "
                              "or --expert-data")
+        if self.select_episodes < 0 or self.select_every < 1:
+            raise ValueError(f"--select-episodes {self.select_episodes} / --select-every {self.select_every}: "
+                             "need >= 0 episodes and >= 1 round")
         if self.picker_odometry and not self.proprio_pickers and self.data.action_labels != "executed":
             raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
                              f"{self.data.action_labels!r} needs 'executed'")
@@ -120,6 +126,13 @@ def main(argv=None) -> dict:
                          state_error_cm=task_spec(task).state_error_cm).summary()["mean"] if cfg.eval_episodes else None
 
     eval_env = cfg.make_env(student_handle)
+    # Early stopping: the snapshots play the same train-split episodes (configurations no evaluation
+    # plays); the weight copy is kept unless a later snapshot beats it measurably (docs: the cause).
+    picks = dataclasses.replace(evals, episodes=cfg.select_episodes, seed=evals.seed + 10_000)
+    select_env = cfg.make_env(student_handle, "train") if cfg.select_episodes and cfg.rounds else None
+    selection = SnapshotSelection(student, lambda r: picks.run(
+        run, student_handle, select_env, step=r * cfg.updates_per_round, tag=f"selection: student after round {r}",
+        prefix="selection", keep_mode=student, split="train").final_performance, state, margin=cfg.select_margin)
     # its rollouts carry the estimate too (fused the student's way)
     teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder, picker_odometry=odometry)
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
@@ -127,13 +140,15 @@ def main(argv=None) -> dict:
     # Rollouts carry both the true state and the encoder's estimate (--state-noise: the buffer adds it).
     roll_envs = [cfg.make_env(h, "train") for h in actors]
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
-    with RunEnvs(None, eval_env, *roll_envs):  # closed on exit
+    with RunEnvs(None, eval_env, select_env, *roll_envs):  # closed on exit
         if cfg.eval_teacher and cfg.eval_episodes and state["teacher_eval"] is None:  # on its own env, closed afterwards
             state["teacher_eval"] = evals.run_snapshot(run, teacher, step=state["updates"], tag="teacher",
                                                        prefix="eval_teacher", parallel=cfg.parallel,
                                                        keep_mode=student, desc="eval (teacher)").summary()["mean"]
         if state["initial_eval"] is None:
             state["initial_eval"] = evaluate("student before training")
+        if select_env is not None:
+            selection.consider(0)
 
         def roll_out(r: int):  # round r's rollouts into the buffer (--act mixed: DAgger's decaying mixture)
             metrics, parts = {}, []
@@ -148,18 +163,30 @@ def main(argv=None) -> dict:
                     parts.append(f"rollout ({handle.kind}) {res.final_performance.mean():.3f}")
             return {**metrics, "round": r + 1}, ", ".join(parts)
 
+        def after_round(r: int):  # every round but the last
+            if select_env is not None and r % cfg.select_every == 0:
+                selection.consider(r)
+            if cfg.eval_every and r % cfg.eval_every == 0:
+                evaluate(f"student after round {r}")
+
         if not train_rounds(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
                             rounds=cfg.rounds, updates_per_round=cfg.updates_per_round, roll_out=roll_out, model=student,
-                            loss_key="train/loss_distill" if cfg.distill else "train/loss_nll", eval_every=cfg.eval_every,
-                            evaluate=lambda r: evaluate(f"student after round {r}")):
+                            loss_key="train/loss_distill" if cfg.distill else "train/loss_nll", eval_every=1,
+                            evaluate=after_round):
             return dict(state)
+        if select_env is not None:
+            selection.consider(cfg.rounds)
+            best = selection.restore()
+            run.print(f"selection: the student after round {best} is kept (train-split scores by round: " + ", ".join(
+                f"{r} {v:.3f}" for r, v in selection.means().items()) + ")")
         # --rounds 0 (the weight copy alone): the policy did not change, its evaluation stands
         final = evaluate("student after distillation") if cfg.rounds > 0 else state["initial_eval"]
     state["final_eval"] = final
     student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
                                "state_noise": cfg.state_noise, "proprio_dims": list(proprio_dims),
-                               "picker_odometry": odometry})
+                               "picker_odometry": odometry, "selected_round": selection.record["best"],
+                               "selection_scores": selection.means()})
     state.finish()
     scores = [f"{k} {'not evaluated' if state[v] is None else format(state[v], '.3f')}"
               for k, v in (("teacher", "teacher_eval"), ("student before", "initial_eval"), ("after", "final_eval"))]

@@ -8,13 +8,15 @@
    on states with 1 cm of Gaussian noise: ``--teacher-args``).
 2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
    and those the weight-copied student visits (``--teacher``, rounds of its rollouts).
-3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data).
+3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data,
+   the snapshot kept by its train-split selection episodes).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
    25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a
    low-priority background process from the end of stage 1 on, on the core that the encoder's and
    the student's training leave idle (``--no-background-expert``: after them); the teacher's and
-   the student's on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
+   the student's, and the student stage's selection episodes, on 2 worker processes
+   (``--no-parallel``: in turn). The numbers are the same.
    The stages evaluate nothing themselves (``TEACHER_EVAL``, ``STUDENT_EVAL``: ``--eval-episodes 0``;
    a stage's own ``--eval-episodes`` in its ``--*-args`` wins): the table has the evaluations.
 
@@ -66,7 +68,8 @@ class PipelineConfig(RunConfig):
     background_expert: bool = True
     """evaluate the scripted expert in a low-priority background process while the encoder and student train"""
     parallel: bool = True
-    """evaluate the teacher and the student on 2 worker processes (--no-parallel: in turn; the same numbers)"""
+    """evaluate the teacher and the student, and play the student's selection episodes, on 2 worker processes
+    (--no-parallel: in turn; the same numbers)"""
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -74,6 +77,7 @@ def main(argv=None) -> pd.DataFrame:
     cfg, name = run.cfg, run.dir.name
     stages = Stages(run, RECIPES)
     mask = ["--mask-unseen-pickers"] if cfg.mask_unseen_pickers else []
+    parallel = ["--parallel"] if cfg.parallel else []
     teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt",
                          ["--task", cfg.task, "--collect-pixels", *mask, *TEACHER_EVAL, *shlex.split(cfg.teacher_args)])
     horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
@@ -84,10 +88,9 @@ def main(argv=None) -> pd.DataFrame:
         encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
                              ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)])
         student = stages.run("distill", f"{name}-student", "policy.pt",
-                             ["--teacher", str(teacher), "--encoder", str(encoder), *STUDENT_EVAL,
+                             ["--teacher", str(teacher), "--encoder", str(encoder), *STUDENT_EVAL, *parallel,
                               *shlex.split(cfg.student_args)])
         directories = {"expert": stages.wait(expert)}
-    parallel = ["--parallel"] if cfg.parallel else []
     for label, policy in (("teacher", str(teacher)), ("student", str(student))):
         directories[label] = stages.run("evaluate", f"{name}-eval-{label}", "summary.csv",
                                         ["--policy", policy, *evaluate, *parallel])

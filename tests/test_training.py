@@ -8,7 +8,7 @@ from tensordict import TensorDict
 
 from quadratic_loss import Quadratic
 from trakdis.optim import Updater
-from trakdis.training import (eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch, train_rounds,
+from trakdis.training import (SnapshotSelection, eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch, train_rounds,
                               train_updates)
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.run import Run, RunConfig, RunState
@@ -172,3 +172,53 @@ def test_online_rollouts_play_the_episodes_into_the_buffer_and_book_them():
     assert line.startswith("rollout normalized performance 2.000, return -5.000 (3 kept; buffer 25% online; 3 episodes")
     metrics, _ = online_rollouts(env, Handle(), buffer, 2, horizon=4, seed=1, add=False)  # the offline-only control
     assert buffer.added[-1] == (0, ("state", "action")) and metrics["online/kept"] == 0
+
+
+def test_snapshot_selection_keeps_a_snapshot_only_if_measurably_better(tmp_path):
+    """A later snapshot replaces the kept one only if its paired gain exceeds ``margin`` standard
+    errors (a tie or a noisy gain keeps the earlier one); no step is scored twice; the record and the
+    kept weights survive a checkpoint."""
+    module = torch.nn.Linear(2, 1)
+    scores = {0: [0.5, 0.5, 0.5, 0.5], 1: [0.9, 0.1, 0.9, 0.1],  # mean 0.5: a tie, kept out
+              2: [0.7, 0.6, 0.8, 0.7], 3: [1.0, 0.2, 1.0, 0.6],  # +0.2 +- 0.04: kept; +0.0 against it: not
+              4: [0.8, 0.7, 0.9, 0.7]}  # +0.075 +- 0.025 over step 2: kept with margin 1, not with margin 4
+    calls = []
+
+    def score(step):
+        calls.append(step)
+        return scores[step]
+
+    run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "sel", "--no-progress"])
+    state = RunState(run, {"updates": 0}, step_key="updates")
+    strict = SnapshotSelection(module, lambda step: scores[step], {}, margin=4.0)
+    selection = SnapshotSelection(module, score, state)
+    weights = {}
+    for step in range(4):
+        with torch.no_grad():
+            module.weight.fill_(float(step))
+        weights[step] = module.weight.clone()
+        assert selection.consider(step) == pytest.approx(sum(scores[step]) / 4)
+        strict.consider(step)
+    assert selection.consider(2) == pytest.approx(0.7) and calls == [0, 1, 2, 3]  # scored once
+    assert selection.record["best"] == strict.record["best"] == 2
+    state["updates"] = 3
+    state.save()
+    # a resumed run: the record comes back from the checkpoint, the kept weights with it
+    resumed = RunState(Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "sel", "--resume", "--no-progress"]),
+                       {"updates": 0}, step_key="updates")
+    fresh = torch.nn.Linear(2, 1)
+    again = SnapshotSelection(fresh, lambda step: pytest.fail("rescored"), resumed)
+    assert again.consider(3) == pytest.approx(0.7) and again.restore() == 2
+    assert torch.equal(fresh.weight, weights[2])
+    with torch.no_grad():
+        module.weight.fill_(4.0)
+    selection.consider(4), strict.consider(4)
+    assert strict.record["best"] == 2 and selection.restore() == 4 and torch.equal(module.weight, torch.full((1, 2), 4.0))
+    assert list(selection.means()) == [0, 1, 2, 3, 4]
+
+
+def test_snapshot_selection_of_nothing_keeps_the_module():
+    module = torch.nn.Linear(2, 1)
+    before = module.weight.clone()
+    assert SnapshotSelection(module, lambda step: [0.0], {}).restore() is None
+    assert torch.equal(module.weight, before)

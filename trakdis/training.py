@@ -5,7 +5,8 @@ an Online DT round's rollouts into the replay buffer (:func:`online_rollouts`), 
 (:func:`run_updates`), the episodes each acting policy plays in a round of DAgger's mixture
 (:func:`mixture_shares`), one epoch's shuffled minibatches of a dataset (:func:`shuffled_batches`),
 one epoch of plain optimiser steps on them (:func:`train_epoch`) and a validation pass over a
-dataset in batches (:func:`eval_batches`).
+dataset in batches (:func:`eval_batches`), and the choice of a run's best snapshot on episodes
+the final evaluation never plays (:class:`SnapshotSelection`).
 
     done = train_updates(run, updater, lambda: buffer.sample(64), state=state, total=1500,
                          log_every=50, checkpoint_every=500)
@@ -17,17 +18,18 @@ from __future__ import annotations
 import contextlib
 from typing import Any, Callable, Iterator, Mapping, Sequence, TypeVar
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from trakdis.evaluation import run_episodes
+from trakdis.evaluation import paired_difference, run_episodes
 from trakdis.optim import Updater, mean_metrics
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches", "train_epoch",
+__all__ = ["SnapshotSelection", "eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches", "train_epoch",
            "train_rounds", "train_updates"]
 
 T = TypeVar("T")
@@ -186,3 +188,59 @@ def eval_batches(module: nn.Module, data: TensorDictBase, batch_size: int,
                     for i in range(0, data.shape[0], batch_size)]
     finally:
         module.train(was_training)
+
+
+class SnapshotSelection:
+    """Model selection among a run's snapshots (early stopping; DAgger's "return the best policy on
+    validation", Ross et al. 2011): :meth:`consider` scores ``module`` as it is now with
+    ``score(step)`` (per-episode scores of episodes that the final evaluation never plays, e.g. the
+    train split's, the same configurations for every snapshot) and keeps a copy of its weights when
+    they beat the snapshot kept so far by more than ``margin`` standard errors of the paired
+    difference. Otherwise the earlier snapshot stays: the first one, a run's starting point (the
+    weight copy), is kept unless a later one is measurably better, so noise alone does not trade it
+    for a worse one. :meth:`restore` loads the kept weights back.
+
+    The record lives in ``state[key]`` (``{"scores": {step: [per-episode scores]}, "best": step,
+    "state_dict": ...}``), so a checkpoint holds it: a resumed run neither scores a snapshot twice
+    nor forgets the kept one.
+
+        selection = SnapshotSelection(student, lambda step: evals.run(...).final_performance, state)
+        selection.consider(0)            # the weight copy
+        ...                              # every few rounds: selection.consider(round)
+        kept = selection.restore()       # the step whose weights are now loaded
+    """
+
+    def __init__(self, module: nn.Module, score: Callable[[int], Sequence[float]], state: dict, *,
+                 margin: float = 1.0, key: str = "selection"):
+        self.module, self.score, self.state, self.margin, self.key = module, score, state, margin, key
+        state.setdefault(key, {"scores": {}, "best": None, "state_dict": None})
+
+    @property
+    def record(self) -> dict:
+        return self.state[self.key]
+
+    def means(self) -> dict[int, float]:
+        """The mean score of every snapshot considered, by step."""
+        return {step: float(np.mean(s)) for step, s in self.record["scores"].items()}
+
+    def consider(self, step: int) -> float:
+        """Score the module's weights at ``step`` (once per step), keep them if they beat the kept
+        snapshot (see the class); returns their mean score."""
+        rec = self.record
+        if step not in rec["scores"]:
+            rec["scores"][step] = [float(x) for x in np.asarray(self.score(step), dtype=np.float64).reshape(-1)]
+            better = rec["best"] is None
+            if not better:
+                gain, se = paired_difference(rec["scores"][rec["best"]], rec["scores"][step])
+                better = gain > 0 and gain > self.margin * se
+            if better:
+                rec["best"] = step
+                rec["state_dict"] = {k: v.detach().clone() for k, v in self.module.state_dict().items()}
+        return float(np.mean(rec["scores"][step]))
+
+    def restore(self) -> int | None:
+        """Load the kept snapshot's weights into the module; returns its step (None: nothing considered)."""
+        rec = self.record
+        if rec["state_dict"] is not None:
+            self.module.load_state_dict(rec["state_dict"])
+        return rec["best"]

@@ -112,4 +112,5 @@ def student(workdir, teacher, encoder) -> Path:
 def distill_args(name: str, *extra: str) -> list:
     return ["--name", name, "--teacher", "runs/online_dt/teacher", "--encoder", "runs/train_encoder/enc",
             "--rounds", 2, "--updates-per-round", 2, "--episodes-per-round", 2, "--eval-episodes", 2,
-            "--eval-every", 1, "--batch-size", 8, "--threads", 1, *DATA, *extra]
+            "--eval-every", 1, "--select-episodes", 2, "--select-every", 1, "--batch-size", 8, "--threads", 1, *DATA,
+            *extra]

@@ -170,6 +170,10 @@ def test_distill_files_and_resume(workdir, student):
     assert frame["train/loss_distill"].notna().sum() == 2
     assert frame["eval_teacher/normalized_performance"].notna().sum() == 1
     assert frame["eval/normalized_performance"].notna().sum() == 3  # before, after round 1, at the end
+    # early stopping: the copy and the students after rounds 1 and 2 played 2 train-split episodes each
+    assert frame["selection/normalized_performance"].notna().sum() == 3
+    saved = load_checkpoint(student / "policy.pt")
+    assert list(saved["selection_scores"]) == [0, 1, 2] and saved["selected_round"] in (0, 1, 2)
     handle = load_policy(student)
     assert handle.kind == "student" and handle.observation_key == "state_estimate" and handle.encoder is not None
     assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7)  # the teacher's architecture
@@ -178,6 +182,8 @@ def test_distill_files_and_resume(workdir, student):
     assert "from step 2" in out.stdout
     a, b = read_log(student), read_log(workdir / "runs" / "distill" / "student2")
     assert a["step"].tolist() == b["step"].tolist()
+    resumed = load_checkpoint(workdir / "runs" / "distill" / "student2" / "policy.pt")
+    assert list(resumed["selection_scores"]) == [0, 1, 2]  # round 1's score came back from the checkpoint
 
 
 def test_distill_ablations(workdir, teacher, encoder):
@@ -333,7 +339,8 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     encoder = " ".join(map(str, ["--horizon", HORIZON, *DATA, "--epochs", 1, "--batch-size", 8,
                                  "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--student-rounds", 1,
                                  "--student-episodes", 2, "--student-epochs", 1]))
-    student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--batch-size", 8, *DATA]))
+    student = " ".join(map(str, ["--rounds", 1, "--updates-per-round", 2, "--batch-size", 8, "--select-episodes", 2,
+                                 *DATA]))
     args = ["--name", "pipe", "--trials", 2, f"--teacher-args={teacher}", f"--encoder-args={encoder}",
             f"--student-args={student}", "--threads", 1, "--mask-unseen-pickers", "--no-parallel"]
     out = run_recipe(workdir, "pipeline", *args, timeout=400)

@@ -107,9 +107,10 @@ class EvalProtocol:
 
     def run(self, run: Any, handle: Any, env: Any, *, step: int, tag: str, prefix: str = "eval",
             keep_mode: nn.Module | None = None, state_error_cm: Callable[[Any], dict] | None = None,
-            desc: str | None = None, episodes: int | None = None) -> EpisodeResults:
+            desc: str | None = None, episodes: int | None = None, split: str = "eval") -> EpisodeResults:
         """Play the episodes of ``handle`` (a :class:`~trakdis.policies.PolicyHandle`) in ``env`` and
-        log them (:func:`log_scores`); ``episodes``: only the first so many (default: all).
+        log them (:func:`log_scores`; ``split``: the pool of ``env``'s configurations, as the line
+        names them); ``episodes``: only the first so many (default: all).
         ``keep_mode``: a module whose train/eval mode is restored afterwards (default: the handle's
         actor). ``state_error_cm`` (a task spec's): also log the encoder's error on the visited
         states, ``<prefix>/encoder_<group>``, for a policy reading images."""
@@ -131,7 +132,7 @@ class EvalProtocol:
             note = (f"; encoder error corners {extra[f'{prefix}/encoder_corners_cm']:.2f} cm, pickers "
                     f"{extra[f'{prefix}/encoder_pickers_cm']:.2f} cm")
         log_scores(run, step, prefix, tag, res.final_performance, res.returns if self.log_returns else None,
-                   detail=res.rate(), note=note, extra=extra)
+                   detail=res.rate(), note=note, extra=extra, split=split)
         return res
 
     def run_snapshot(self, run: Any, handle: Any, *, step: int, tag: str, prefix: str = "eval", parallel: bool = False,
