@@ -51,7 +51,7 @@ class TrainEncoderConfig(RunConfig):
     val_fraction: float = 0.1  # fraction of the episodes held out for validation
     teacher: str = ""
     """teacher policy file or online_dt run directory: also train on the weight-copied student's images"""
-    student_rounds: int = 4  # rounds of (student rollouts, training) with --teacher
+    student_rounds: int = 2  # rounds of (student rollouts, training) with --teacher
     student_episodes: int = 20  # student rollouts per round
     student_epochs: int = 5  # passes over all training images after each round's rollouts
     mask_unseen_pickers: bool = False
