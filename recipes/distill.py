@@ -3,6 +3,7 @@
     python recipes/distill.py                                  # latest teacher + latest encoder
     python recipes/distill.py --teacher runs/online_dt/A --encoder runs/train_encoder/B
     python recipes/distill.py --no-weight-copy                 # ablation No-Pretrain
+    python recipes/distill.py --select-episodes 0              # the last round's weights (no selection)
 
 Steps, ablations, outputs (``runs/distill/<name>/``), options and measurements: docs/recipes/distill.md.
 """
