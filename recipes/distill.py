@@ -84,7 +84,8 @@ def main(argv=None) -> dict:
     task, horizon = teacher.task, teacher.horizon
     # Teacher and student read states standardised with the teacher's statistics (the student's
     # weights start as the teacher's, and the encoder's estimates live in state units).
-    proprio_dims = tuple(range(12, task_spec(task).state_dim)) if cfg.proprio_pickers else ()
+    pickers = task_spec(task).state_groups["pickers"]
+    proprio_dims = tuple(range(pickers.start, pickers.stop)) if cfg.proprio_pickers else ()
     odometry = cfg.picker_odometry and not cfg.proprio_pickers  # proprioception gives the pickers outright
     student_handle, dt_cfg = weight_copied_student(teacher, encoder, weight_copy=cfg.weight_copy, device=cfg.device,
                                                    normalizer_keys=("state", "state_estimate"), proprio_dims=proprio_dims,

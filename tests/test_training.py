@@ -8,8 +8,8 @@ from tensordict import TensorDict
 
 from quadratic_loss import Quadratic
 from trakdis.optim import Updater
-from trakdis.training import (SnapshotSelection, eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch, train_rounds,
-                              train_updates)
+from trakdis.training import (SnapshotSelection, eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch,
+                              train_rounds, train_updates)
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.run import Run, RunConfig, RunState
 

@@ -29,8 +29,8 @@ from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["SnapshotSelection", "eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches", "train_epoch",
-           "train_rounds", "train_updates"]
+__all__ = ["SnapshotSelection", "eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches",
+           "train_epoch", "train_rounds", "train_updates"]
 
 T = TypeVar("T")
 
