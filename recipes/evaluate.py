@@ -6,7 +6,8 @@
 
 Runs ``--trials`` episodes (default 100, the paper's count) per state-noise level and writes to
 ``runs/evaluate/<name>/``: ``episodes.csv`` (one row per episode, with where each picker first closed
-and whether its corner was lifted: ``trakdis.evaluation.grasp_report``), ``summary.csv`` and
+and whether its corner was lifted: ``trakdis.evaluation.grasp_report``; for a student, the encoder's error
+per state group on the states it visited), ``summary.csv`` and
 ``summary.md`` (mean, std, 25/50/75th percentiles of the normalized performance at the episode's
 end) and ``videos/`` (a few extra episodes: large render side by side with the agent's 32x32 view).
 """
@@ -19,7 +20,7 @@ from typing import Literal, Optional
 
 import pandas as pd
 
-from trakdis.envs import close_env
+from trakdis.envs import close_env, task_spec
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import episode_frames, grasp_report, run_episodes, summarize, summarize_grasps, write_summary_table
 from trakdis.policies import load_policy
@@ -74,6 +75,7 @@ def main(argv=None) -> pd.DataFrame:
     run = Run.start("evaluate", EvaluateConfig, argv, description=__doc__)
     cfg = run.cfg
     handle = load_policy(cfg.policy, task=cfg.task, horizon=cfg.horizon, expert_noise=cfg.expert_noise, device=cfg.device)
+    spec = task_spec(handle.task, horizon=handle.horizon)
     name = handle.kind if handle.kind == "expert" else f"{handle.kind} ({handle.source})"
     run.print(f"evaluating {name} on {handle.task} ({cfg.split} split), {cfg.trials} trials x "
               f"state noise {list(cfg.state_noise)}")
@@ -81,17 +83,23 @@ def main(argv=None) -> pd.DataFrame:
     for i, sigma in enumerate(cfg.state_noise):
         env = handle.make_env(num_envs=cfg.num_envs, split=cfg.split, state_noise=sigma, noise_seed=cfg.seed + 7919,
                               parallel=cfg.parallel, target_return=cfg.target_return)
-        grasps = []  # where each episode's pickers first closed (trakdis.evaluation.grasps)
+        grasps, errors = [], []  # where each episode's pickers first closed (trakdis.evaluation.grasps)
+
+        def on_episode(ep):
+            grasps.append(grasp_report(handle.task, ep))
+            if handle.uses_pixels and "state_estimate" in ep.keys():  # the encoder's error on the states visited
+                err = spec.state_error_cm((ep["state_estimate"] - ep["state"]).abs())
+                errors.append({f"encoder_{k}": v for k, v in err.items() if k != "mae"})
+
         try:  # the same configurations for every noise level (and every policy evaluated with this seed)
             res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.trials, max_steps=handle.horizon,
-                               desc=f"sigma={sigma:g}", seed=cfg.seed,
-                               on_episode=lambda ep: grasps.append(grasp_report(handle.task, ep)))
+                               desc=f"sigma={sigma:g}", seed=cfg.seed, on_episode=on_episode)
         finally:
             close_env(env)
         for k in range(len(res.final_performance)):
             rows.append({"state_noise": sigma, "episode": k, "final_normalized_performance": res.final_performance[k],
                          "return": res.returns[k], "length": int(res.lengths[k]), "sim_unstable": bool(res.unstable[k]),
-                         **(grasps[k] or {})})
+                         **(grasps[k] or {}), **(errors[k] if errors else {})})
         s = summarize(res.final_performance)
         summaries.append({"task": handle.task, "policy": handle.kind, "state_noise": sigma, **s,
                           "unstable": int(res.unstable.sum())})
@@ -100,6 +108,10 @@ def main(argv=None) -> pd.DataFrame:
                   f"(p25 {s['p25']:.3f}, p50 {s['p50']:.3f}, p75 {s['p75']:.3f}; {s['n']} trials)")
         if all(g is not None for g in grasps):
             run.print(f"sigma={sigma:g}: {summarize_grasps(handle.task, grasps)}")
+        if errors:
+            run.print(f"sigma={sigma:g}: encoder error on the visited states (mean over episodes): " + ", ".join(
+                f"{k.removeprefix('encoder_').removesuffix('_cm')} {sum(e[k] for e in errors) / len(errors):.2f} cm"
+                for k in errors[0]))
     pd.DataFrame(rows).to_csv(run.dir / "episodes.csv", index=False)
     frame = write_summary_table(summaries, run.dir / "summary.csv", run.dir / "summary.md",
                                 columns=("task", "policy", "state_noise", "n", "mean", "std", "p25", "p50", "p75"))

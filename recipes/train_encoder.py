@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from trakdis.data import DataConfig, load_train_val_steps
 from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
-from trakdis.modules import NormalizedEncoder, StateEncoder
+from trakdis.modules import EncoderEnsemble, NormalizedEncoder, StateEncoder
 from trakdis.objectives import EncoderLoss
 from trakdis.optim import make_optimizer
 from trakdis.policies import check_unseen_picker_mask, load_teacher, save_encoder, student_rollout_steps
@@ -46,6 +46,8 @@ class TrainEncoderConfig(RunConfig):
     head: str = "flatten"  # encoder head: 'flatten' (conv features -> MLP) or 'keypoints' (spatial soft-argmax)
     stem_stride: int = 2  # stride of the first conv layer (1 keeps the full resolution)
     coord_channels: bool = False  # append pixel-coordinate channels to the image (CoordConv)
+    members: int = 1  # encoders trained side by side on the same batches; the student reads their mean (a deep ensemble)
+    test_time_flip: bool = True  # each member also reads the mirrored image, its estimate mirrored back and averaged (not with --no-aug)
     extra_noise: tuple[float, ...] = ()
     """also train on datasets of the same size collected with these expert movement noises"""
     val_fraction: float = 0.1  # fraction of the episodes held out for validation
@@ -66,6 +68,8 @@ def main(argv=None) -> dict:
             cfg.teacher and cfg.student_rounds > 0 and min(cfg.student_episodes, cfg.student_epochs) < 1:
         raise ValueError(f"--student-rounds {cfg.student_rounds} >= 0 needs --student-episodes "
                          f"({cfg.student_episodes}) and --student-epochs ({cfg.student_epochs}) >= 1")
+    if cfg.members < 1:
+        raise ValueError(f"--members {cfg.members}: need at least 1 encoder")
     # the expert images and states, split by episode; --extra-noise datasets join the training steps
     path, train, val, train_episodes, val_episodes = load_train_val_steps(
         cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, keys=("pixels", "state"),
@@ -84,13 +88,16 @@ def main(argv=None) -> dict:
     run.print(f"{path}: {train.shape[0]} training / {0 if val is None else val.shape[0]} validation images "
               f"({len(train_episodes)} / {len(val_episodes)} episodes)")
 
-    encoder = NormalizedEncoder(StateEncoder(spec.state_dim, image_size=cfg.image_size, channels=cfg.channels,
-                                             hidden_dim=cfg.hidden_dim, head=cfg.head, stem_stride=cfg.stem_stride,
-                                             coord_channels=cfg.coord_channels), mean, std).to(cfg.device)
+    members = [NormalizedEncoder(StateEncoder(spec.state_dim, image_size=cfg.image_size, channels=cfg.channels,
+                                              hidden_dim=cfg.hidden_dim, head=cfg.head, stem_stride=cfg.stem_stride,
+                                              coord_channels=cfg.coord_channels), mean, std) for _ in range(cfg.members)]
+    encoder = (members[0] if cfg.members == 1 else EncoderEnsemble(members)).to(cfg.device)  # --members: their mean
+    flip = cfg.test_time_flip and cfg.aug  # a test-time augmentation: none with --no-aug
     loss = EncoderLoss(encoder, state_mirror=spec.state_mirror, augment=cfg.aug, flip_prob=cfg.flip_prob, pad=cfg.pad)
     optim = make_optimizer("adamw", encoder.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     n_params = sum(p.numel() for p in encoder.parameters())
-    run.print(f"encoder: {n_params / 1e6:.2f}M parameters, augmentation {'on' if cfg.aug else 'off'}")
+    run.print(f"encoder: {cfg.members} x {n_params / cfg.members / 1e6:.2f}M parameters, augmentation "
+              f"{'on' if cfg.aug else 'off'}, test-time flip {'on' if flip else 'off'}")
 
     state = RunState(run, {"epoch": 0, "best": {"val_mae": float("inf"), "state_dict": None, "epoch": -1},
                            "rounds_done": 0, "student_steps": None}, step_key="epoch", counters_key=None,
@@ -146,6 +153,10 @@ def main(argv=None) -> dict:
             return state["best"]
     best = state["best"]
     encoder.load_state_dict(best["state_dict"])
+    if flip:  # the saved encoder also reads the mirrored image (training, validation and rounds read it once)
+        encoder = EncoderEnsemble(list(getattr(encoder, "members", [encoder])), state_mirror=spec.state_mirror)
+        groups = ", ".join(f"{k.removesuffix('_cm')} {v:.2f} cm" for k, v in validate().items() if k != "mae")
+        run.print(f"--test-time-flip: validation error with the mirrored view averaged in: {groups}")
     save_encoder(run.dir / "encoder.pt", encoder.cpu(), task=cfg.task,
                  extra={"val_mae": best["val_mae"], "val_error_cm": best.get("val_error_cm"), "epoch": best["epoch"],
                         "aug": cfg.aug, "dataset": str(path), "student_rounds": state["rounds_done"], **mask_meta})

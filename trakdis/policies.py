@@ -28,6 +28,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from trakdis.envs.batched import make_batched_env
+from trakdis.modules.encoder import EncoderEnsemble
 from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
 from trakdis.transforms.normalization import ProprioceptionOverride, StateNormalizer
 from trakdis.transforms.visibility import OutOfViewFill
@@ -105,24 +106,44 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
 _EARLIER_ENCODER_LAYOUT = {"head": "flatten", "stem_stride": 2, "coord_channels": False}
 
 
-def save_encoder(path: str | Path, encoder: NormalizedEncoder, *, task: str, extra: Mapping[str, Any] | None = None) -> Path:
+def save_encoder(path: str | Path, encoder: NormalizedEncoder | EncoderEnsemble, *, task: str,
+                 extra: Mapping[str, Any] | None = None) -> Path:
+    """Write an encoder file: a :class:`NormalizedEncoder`, or an :class:`~trakdis.modules.EncoderEnsemble`
+    of them (its ``"ensemble"`` entry: the number of members and the state mirror, if any)."""
+    ensemble = None
+    if isinstance(encoder, EncoderEnsemble):
+        ensemble = {"members": len(encoder.members), "state_mirror": encoder.state_mirror}
+        first = encoder.members[0]
+    else:
+        first = encoder
     return save_checkpoint(path, {
-        "kind": "encoder", "task": task, "encoder_kwargs": dict(encoder.encoder.config),
-        "state_dict": encoder.state_dict(), **dict(extra or {}),
+        "kind": "encoder", "task": task, "encoder_kwargs": dict(first.encoder.config),
+        "state_dict": encoder.state_dict(), **dict(extra or {}), "ensemble": ensemble,
     })
 
 
-def encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder:
+def encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder | EncoderEnsemble:
     from trakdis.modules import StateEncoder
 
-    kw = {**_EARLIER_ENCODER_LAYOUT, **dict(data["encoder_kwargs"])}
-    enc = NormalizedEncoder(StateEncoder(kw.pop("state_dim"), **kw), torch.zeros(1), torch.ones(1))
-    enc.mean = torch.zeros(enc.encoder.state_dim)
-    enc.std = torch.ones(enc.encoder.state_dim)
+    def member() -> NormalizedEncoder:
+        kw = {**_EARLIER_ENCODER_LAYOUT, **dict(data["encoder_kwargs"])}
+        state_dim = kw.pop("state_dim")
+        return NormalizedEncoder(StateEncoder(state_dim, **kw), torch.zeros(state_dim), torch.ones(state_dim))
+
+    ensemble = data.get("ensemble")
+    if ensemble:
+        if not isinstance(ensemble.get("members"), int) or ensemble["members"] < 1:
+            raise CheckpointError(f"encoder file: 'ensemble' needs 'members' >= 1, got {ensemble!r}")
+        mirror = ensemble.get("state_mirror")
+        enc = EncoderEnsemble([member() for _ in range(ensemble["members"])],
+                              state_mirror=None if mirror is None else tuple(mirror))
+    else:
+        enc = member()
     try:
         enc.load_state_dict(data["state_dict"])
     except RuntimeError as err:
-        raise CheckpointError(f"encoder weights do not match its encoder_kwargs {data['encoder_kwargs']}: {err}") from err
+        raise CheckpointError(f"encoder weights do not match its encoder_kwargs {data['encoder_kwargs']} "
+                              f"(ensemble {ensemble}): {err}") from err
     return enc.eval()
 
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from trakdis.modules import StateEncoder, to_float_chw
+from trakdis.modules import EncoderEnsemble, StateEncoder, to_float_chw
 
 
 def test_uint8_hwc_and_float_chw_agree():
@@ -79,3 +79,65 @@ def test_layouts_shapes_gradients_and_config(kw):
     torch.testing.assert_close(rebuilt(torch.ones(1, 3, 32, 32)), enc(torch.ones(1, 3, 32, 32)))
     with pytest.raises(ValueError, match="head"):
         StateEncoder(7, head="mlp")
+
+
+class _DotDecoder(torch.nn.Module):
+    """A perfect encoder of a toy scene: one bright pixel per point, read back as (x, y, 0)."""
+
+    def forward(self, pixels):
+        x = to_float_chw(pixels)[:, 0]  # [N, H, W]
+        n, h, w = x.shape
+        out = []
+        for rows in (slice(0, h // 2), slice(h // 2, h)):  # point 0 in the top half, point 1 in the bottom
+            flat = x[:, rows].reshape(n, -1).argmax(-1)
+            col = (flat % w).float() - (w - 1) / 2  # centred: the flip maps col -> -col
+            out += [col, torch.zeros(n), torch.zeros(n)]
+        return torch.stack(out, -1)
+
+
+def test_encoder_ensemble_averages_members_and_mirrored_views():
+    px = torch.zeros(3, 8, 8, 3, dtype=torch.uint8)
+    px[:, 1, 2, 0] = 255  # point 0 at column 2, point 1 at column 6
+    px[:, 6, 6, 0] = 255
+    exact = _DotDecoder()(px)
+    # the flip mirrors x and (here) keeps the point identities: perm = identity, sign = -1 on x
+    mirror = (list(range(6)), [-1.0, 1.0, 1.0, -1.0, 1.0, 1.0])
+    torch.testing.assert_close(EncoderEnsemble([_DotDecoder()], state_mirror=mirror)(px), exact)
+    # a biased member: its bias on x is antisymmetric under the mirror and averages out
+    class Biased(_DotDecoder):
+        def forward(self, pixels):
+            return super().forward(pixels) + torch.tensor([0.5, 0.0, 0.0, 0.5, 0.0, 0.0])
+
+    torch.testing.assert_close(EncoderEnsemble([Biased()], state_mirror=mirror)(px), exact)
+    torch.testing.assert_close(EncoderEnsemble([Biased()])(px), exact + 0.5 * torch.tensor([1.0, 0, 0, 1, 0, 0]))
+    torch.testing.assert_close(EncoderEnsemble([Biased(), _DotDecoder()])(px), exact + 0.25 * torch.tensor([1.0, 0, 0, 1, 0, 0]))
+    # uint8 HWC and float CHW images flip along their width alike
+    torch.testing.assert_close(EncoderEnsemble([Biased()], state_mirror=mirror)(to_float_chw(px)), exact)
+    with pytest.raises(ValueError, match="at least one member"):
+        EncoderEnsemble([])
+
+
+def test_encoder_ensemble_file_round_trip(tmp_path):
+    from trakdis.envs import task_spec
+    from trakdis.modules import NormalizedEncoder
+    from trakdis.policies import load_encoder, save_encoder
+
+    members = [NormalizedEncoder(StateEncoder(18, channels=(4, 4, 4, 4), hidden_dim=8), torch.randn(18), torch.rand(18) + 0.5)
+               for _ in range(2)]
+    ens = EncoderEnsemble(members, state_mirror=task_spec("ClothFold").state_mirror).eval()
+    save_encoder(tmp_path / "encoder.pt", ens, task="ClothFold", extra={"val_mae": 0.1})
+    loaded, data = load_encoder(tmp_path / "encoder.pt", task="ClothFold")
+    px = torch.randint(0, 255, (2, 32, 32, 3), dtype=torch.uint8)
+    assert isinstance(loaded, EncoderEnsemble) and data["ensemble"]["members"] == 2 and data["val_mae"] == 0.1
+    torch.testing.assert_close(loaded(px), ens(px))
+    torch.testing.assert_close(ens(px), torch.stack([m(px) for m in members] + [
+        m(px.flip(-2))[..., ens.state_mirror[0]] * torch.tensor(ens.state_mirror[1]) for m in members]).mean(0))
+
+
+def test_encoder_ensemble_file_with_a_bad_member_count_is_refused(tmp_path):
+    from trakdis.policies import encoder_from_dict
+    from trakdis.utils.checkpoint import CheckpointError
+
+    data = {"kind": "encoder", "encoder_kwargs": {"state_dim": 18}, "state_dict": {}, "ensemble": {"members": 0}}
+    with pytest.raises(CheckpointError, match="'members' >= 1"):
+        encoder_from_dict(data)

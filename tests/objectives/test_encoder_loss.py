@@ -125,3 +125,21 @@ def test_keys_and_errors():
         loss(TensorDict(image=imgs.permute(0, 3, 1, 2).contiguous(), label=state, batch_size=[4]))
     with pytest.raises(ValueError, match="'label' has shape"):
         loss(TensorDict(image=imgs, label=state[:, None].expand(4, 2, 4), batch_size=[4]))
+
+
+def test_ensemble_members_learn_from_their_own_errors():
+    from trakdis.modules import EncoderEnsemble
+
+    imgs, state = dot_images(4)
+    a, b = DotDecoder(), DotDecoder()
+    with torch.no_grad():
+        a.bias.fill_(1.0)
+        b.bias.fill_(-1.0)
+    loss = EncoderLoss(EncoderEnsemble([a, b]), state_mirror=(PERM, SIGN), flip_prob=0.5)
+    out = loss(TensorDict({"pixels": imgs, "state": state}, batch_size=[4]))
+    # each member is off by 1 everywhere: the loss is their own MSE (1), the mean estimate is exact
+    assert out["loss_encoder"].item() == pytest.approx(1.0) and out["mae"].item() == pytest.approx(0.0)
+    out["loss_encoder"].backward()
+    # d/d bias of mean_m mean_i (err_m)^2 = 2 err_m / (members * dims): +-0.25 per dim
+    torch.testing.assert_close(a.bias.grad, torch.full((4,), 0.25))
+    torch.testing.assert_close(b.bias.grad, torch.full((4,), -0.25))

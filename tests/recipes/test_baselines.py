@@ -147,6 +147,10 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
             ev = json.loads((workdir / "runs" / "evaluate" / f"t1-ClothFold-s0-eval-{baseline}" / "config.json").read_text())
             assert ev["parallel"] is False, baseline
         assert json.loads((workdir / "runs" / "train_encoder" / "t1-ClothFold-s0-encoder-noaug" / "config.json").read_text())["aug"] is False
+        # the test-time flip is an augmentation too: the No-Aug encoder reads the image once, the full method's twice
+        encoders = workdir / "runs" / "train_encoder"
+        assert load_checkpoint(encoders / "t1-ClothFold-s0-encoder-noaug" / "encoder.pt")["ensemble"] is None
+        assert load_checkpoint(encoders / "t1-ClothFold-s0-encoder" / "encoder.pt")["ensemble"]["state_mirror"] is not None
         capsys.readouterr()
         again = bench.main(["--name", "t1", "--resume"])
         assert "run directory:" not in capsys.readouterr().out  # no stage ran again

@@ -8,8 +8,8 @@ import pandas as pd
 import pytest
 
 from trakdis.utils.checkpoint import load_checkpoint
-from trakdis.modules import find_dt_actor
-from trakdis.policies import load_policy
+from trakdis.modules import EncoderEnsemble, find_dt_actor
+from trakdis.policies import load_encoder, load_policy
 
 from .conftest import (DATA, HORIZON, RECIPES, _env, distill_args, kill_when, load_recipe, online_dt_args,
                        run_recipe, start_recipe)
@@ -233,6 +233,8 @@ def test_evaluate_student_and_expert(workdir, student):
     assert len(episodes) == 6 and (episodes["length"] == HORIZON).all()
     # where each picker first closed, and whether its corner was lifted (trakdis.evaluation.grasp_report)
     assert {"picker0_first_close_cm", "picker0_corner_lifted", "picker1_first_close_cm"} <= set(episodes.columns)
+    # the encoder's error on the states each episode visited, per state group
+    assert (episodes["encoder_corners_cm"] > 0).all() and (episodes["encoder_pickers_cm"] > 0).all()
     assert summary["mean"].iloc[0] == pytest.approx(episodes[episodes.state_noise == 0]["final_normalized_performance"].mean())
     md = (run_dir / "summary.md").read_text()
     assert md.startswith("| task | policy | state_noise | n | mean") and "| ClothFold | student |" in md
@@ -368,13 +370,17 @@ def test_train_encoder_on_the_weight_copied_students_states(workdir, teacher):
     out = run_recipe(workdir, "train_encoder", "--name", "enc-student", "--horizon", HORIZON, *DATA, "--epochs", 1,
                      "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--threads", 1,
                      "--teacher", "runs/online_dt/teacher", "--student-rounds", 1, "--student-episodes", 2,
-                     "--student-epochs", 1)
+                     "--student-epochs", 1, "--members", 2, "--test-time-flip")
     assert "student round 1/1" in out.stdout
     frame = read_log(workdir / "runs" / "train_encoder" / "enc-student")
     assert frame["student/normalized_performance"].notna().sum() == 1
     assert frame["student/pickers_cm"].notna().sum() == 1
     ck = load_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "encoder.pt")
     assert ck["student_rounds"] == 1 and ck["epoch"] == 2
+    # --members 2 --test-time-flip: an ensemble of two encoders, each also reading the mirrored image
+    encoder, _ = load_encoder(workdir / "runs" / "train_encoder" / "enc-student")
+    assert isinstance(encoder, EncoderEnsemble) and len(encoder.members) == 2 and encoder.state_mirror is not None
+    assert ck["ensemble"]["members"] == 2
     # the run's checkpoint (with the student's images) loads with the safe loader, so --resume works
     ck = load_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "checkpoint.pt")
     assert ck["student_steps"]["pixels"].shape[0] == 2 * HORIZON

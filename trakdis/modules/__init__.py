@@ -5,7 +5,7 @@ from trakdis.modules.baselines import BCConfig, BCHead, ImageTrunk, ImageTrunkCo
 from trakdis.modules.decision_transformer import (DTBackbone, DTConfig, StochasticDTActor, find_dt_actor, make_dt_actor,
                                                  recipe_hidden_action_dims)
 from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
-from trakdis.modules.encoder import SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
+from trakdis.modules.encoder import EncoderEnsemble, SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 from trakdis.modules.weights import copy_teacher_weights
 
@@ -24,6 +24,7 @@ __all__ = [
     "KVCache",
     "NormalizedEncoder",
     "NormalizedPolicy",
+    "EncoderEnsemble",
     "SpatialSoftArgmax",
     "StateEncoder",
     "StochasticDTActor",

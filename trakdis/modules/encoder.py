@@ -6,7 +6,9 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-__all__ = ["SpatialSoftArgmax", "StateEncoder", "coordinate_channels", "to_float_chw"]
+from trakdis.transforms.augment import mirror_state
+
+__all__ = ["EncoderEnsemble", "SpatialSoftArgmax", "StateEncoder", "coordinate_channels", "to_float_chw"]
 
 
 def to_float_chw(pixels: torch.Tensor, *, name: str = "pixels") -> torch.Tensor:
@@ -148,3 +150,33 @@ class StateEncoder(nn.Module):
         lead = x.shape[:-3]
         x = x.reshape(-1, *x.shape[-3:])
         return self.head(self.features(x)).reshape(*lead, self.state_dim)
+
+
+class EncoderEnsemble(nn.Module):
+    """The mean of several encoders' estimates, each also read off the mirrored image if ``state_mirror``.
+
+    ``members``: encoders mapping the same images to states in the same units (e.g.
+    :class:`~trakdis.modules.NormalizedEncoder`, raw state units). With ``state_mirror=(perm, sign)``
+    (``trakdis.envs.task_spec(task).state_mirror``) every member also reads the left-right flipped
+    image, and its estimate is mirrored back (``state[..., perm] * sign``) before the average: the
+    flip test-time augmentation, exact where the flip augmentation is (the mirrored scene renders
+    as the flipped image). A member's errors that are not mirror-symmetric average out.
+
+    Input: uint8 ``[*B, H, W, 3]`` or float ``[*B, 3, H, W]`` images; output ``[*B, state_dim]``.
+    """
+
+    def __init__(self, members: Sequence[nn.Module], *, state_mirror: tuple[Sequence[int], Sequence[float]] | None = None):
+        super().__init__()
+        if len(members) < 1:
+            raise ValueError("EncoderEnsemble needs at least one member")
+        self.members = nn.ModuleList(members)
+        self.state_mirror = None if state_mirror is None else (
+            [int(i) for i in state_mirror[0]], [float(v) for v in state_mirror[1]])
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        estimates = [member(pixels) for member in self.members]
+        if self.state_mirror is not None:
+            # HWC uint8 images flip along dim -2, CHW float images along dim -1 (to_float_chw's layouts)
+            flipped = pixels.flip(-2 if pixels.dtype == torch.uint8 else -1)
+            estimates += [mirror_state(member(flipped), *self.state_mirror) for member in self.members]
+        return torch.stack(estimates).mean(0)

@@ -10,7 +10,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.objectives import LossModule
 
-from trakdis.modules.encoder import to_float_chw
+from trakdis.modules.encoder import EncoderEnsemble, to_float_chw
 from trakdis.transforms.augment import random_flip, random_shift
 
 __all__ = ["EncoderLoss"]
@@ -44,6 +44,10 @@ class EncoderLoss(LossModule):
             in the image while the state labels stay, so it trains the encoder to ignore where things
             are (measured: docs/recipes/train_encoder.md); the flip transforms its labels, the shift cannot.
         in_key, target_key: set the ``pixels`` / ``state`` keys (also via ``set_keys``).
+
+    With an :class:`~trakdis.modules.EncoderEnsemble` each member is trained on its own squared error
+    (``loss_encoder``: their mean; the members' mirrored views are for acting, not trained), and
+    ``mae`` is that of the members' mean estimate.
 
     Returns ``loss_encoder`` (MSE) and metric ``mae`` (detached), both averaged over batch and dims.
     """
@@ -129,5 +133,11 @@ class EncoderLoss(LossModule):
         state = state.reshape(-1, state.shape[-1]).detach().to(images.dtype)
         if self.augment and self.training:
             images, state = self.augment_batch(images, state)
-        err = self.encoder(images) - state
-        return TensorDict({"loss_encoder": err.pow(2).mean(), "mae": err.detach().abs().mean()}, batch_size=[])
+        if isinstance(self.encoder, EncoderEnsemble):  # each member learns from its own error (a deep ensemble)
+            errs = [member(images) - state for member in self.encoder.members]
+            loss = torch.stack([e.pow(2).mean() for e in errs]).mean()
+            err = torch.stack(errs).mean(0)
+        else:
+            err = self.encoder(images) - state
+            loss = err.pow(2).mean()
+        return TensorDict({"loss_encoder": loss, "mae": err.detach().abs().mean()}, batch_size=[])
