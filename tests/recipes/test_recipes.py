@@ -370,14 +370,14 @@ def test_train_encoder_on_the_weight_copied_students_states(workdir, teacher):
     out = run_recipe(workdir, "train_encoder", "--name", "enc-student", "--horizon", HORIZON, *DATA, "--epochs", 1,
                      "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--threads", 1,
                      "--teacher", "runs/online_dt/teacher", "--student-rounds", 1, "--student-episodes", 2,
-                     "--student-epochs", 1, "--members", 2, "--test-time-flip")
+                     "--student-epochs", 1, "--members", 2, "--test-time-flip", "on")
     assert "student round 1/1" in out.stdout
     frame = read_log(workdir / "runs" / "train_encoder" / "enc-student")
     assert frame["student/normalized_performance"].notna().sum() == 1
     assert frame["student/pickers_cm"].notna().sum() == 1
     ck = load_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "encoder.pt")
     assert ck["student_rounds"] == 1 and ck["epoch"] == 2
-    # --members 2 --test-time-flip: an ensemble of two encoders, each also reading the mirrored image
+    # --members 2 --test-time-flip on: an ensemble of two encoders, each also reading the mirrored image
     encoder, _ = load_encoder(workdir / "runs" / "train_encoder" / "enc-student")
     assert isinstance(encoder, EncoderEnsemble) and len(encoder.members) == 2 and encoder.state_mirror is not None
     assert ck["ensemble"]["members"] == 2
