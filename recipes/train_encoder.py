@@ -62,6 +62,10 @@ class TrainEncoderConfig(RunConfig):
     mask_unseen_pickers: bool = False
     """label each picker out of the camera view with a fixed sentinel xyz (for a teacher trained so)"""
 
+    def __post_init__(self):  # checked while parsing, before the run directory exists
+        if self.members < 1:
+            raise ValueError(f"--members {self.members}: need at least 1 encoder")
+
 
 # --test-time-flip auto: the tasks where it was measured to lift the weight copy on every seed
 # (docs/recipes/train_encoder.md; on the diagonal folds it went both ways)
@@ -76,8 +80,6 @@ def main(argv=None) -> dict:
             cfg.teacher and cfg.student_rounds > 0 and min(cfg.student_episodes, cfg.student_epochs) < 1:
         raise ValueError(f"--student-rounds {cfg.student_rounds} >= 0 needs --student-episodes "
                          f"({cfg.student_episodes}) and --student-epochs ({cfg.student_epochs}) >= 1")
-    if cfg.members < 1:
-        raise ValueError(f"--members {cfg.members}: need at least 1 encoder")
     # the expert images and states, split by episode; --extra-noise datasets join the training steps
     path, train, val, train_episodes, val_episodes = load_train_val_steps(
         cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, keys=("pixels", "state"),

@@ -315,6 +315,7 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),
     ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
     ("distill", ["--picker-odometry", "--data.action-labels", "expert"], r"integrates the executed actions"),
+    ("train_encoder", ["--members", "0"], r"--members 0: need at least 1 encoder"),
 ])
 def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, capsys, recipe, args, message):
     # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
