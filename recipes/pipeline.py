@@ -7,7 +7,8 @@
 1. ``recipes/online_dt.py``: the expert dataset and the privileged teacher (by default offline,
    on states with 1 cm of Gaussian noise: ``--teacher-args``).
 2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
-   and those the weight-copied student visits (``--teacher``, rounds of its rollouts).
+   and those the weight-copied student visits (``--teacher``, rounds of its rollouts); three trained
+   side by side, the one the weight copy folds best with kept (``--members 3 --select-episodes 30``).
 3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data,
    the snapshot kept by its train-split selection episodes).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
@@ -59,8 +60,10 @@ class PipelineConfig(RunConfig):
     """extra options for recipes/online_dt.py (default: the offline teacher trained on states with
     1 cm of Gaussian noise, so that its weights act on an encoder's estimates; the arm measured
     in docs/recipes/distill.md)"""
-    encoder_args: str = "--extra-noise 0.5"
-    """extra options for recipes/train_encoder.py (default: noisy-expert images added to training)"""
+    encoder_args: str = "--extra-noise 0.5 --members 3 --select-episodes 30"
+    """extra options for recipes/train_encoder.py (default: noisy-expert images added to training; three
+    encoders trained side by side, the one whose weight copy folds best on 30 train-split episodes kept:
+    which draw the copy gets was the largest effect on the student, docs/recipes/train_encoder.md)"""
     student_args: str = ""
     """extra options for recipes/distill.py"""
     mask_unseen_pickers: bool = False

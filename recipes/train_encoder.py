@@ -21,7 +21,8 @@ from trakdis.envs.specs import TaskName
 from trakdis.modules import EncoderEnsemble, NormalizedEncoder, StateEncoder
 from trakdis.objectives import EncoderLoss
 from trakdis.optim import make_optimizer
-from trakdis.policies import check_unseen_picker_mask, load_teacher, save_encoder, student_rollout_steps
+from trakdis.policies import (check_unseen_picker_mask, load_teacher, save_encoder, student_rollout_steps,
+                              weight_copy_scores)
 from trakdis.transforms import OutOfViewFill
 from trakdis.training import eval_batches, train_epoch
 from trakdis.utils.run import Run, RunConfig, RunState
@@ -38,6 +39,8 @@ class TrainEncoderConfig(RunConfig):
     epochs: int = 20  # passes over the training images
     batch_size: int = 128  # images per update
     lr: float = 1e-3  # learning rate (AdamW)
+    lr_schedule: Literal["constant", "cosine"] = "constant"
+    """'cosine': the learning rate falls to 0 over all epochs (student rounds included), one step per epoch"""
     weight_decay: float = 1e-4  # weight decay
     aug: bool = True  # augment (label-consistent horizontal flip; random shift if --pad > 0) while training
     flip_prob: float = 0.5  # probability of the mirrored image
@@ -48,6 +51,9 @@ class TrainEncoderConfig(RunConfig):
     stem_stride: int = 2  # stride of the first conv layer (1 keeps the full resolution)
     coord_channels: bool = False  # append pixel-coordinate channels to the image (CoordConv)
     members: int = 1  # encoders trained side by side on the same batches; the student reads their mean (a deep ensemble)
+    select_episodes: int = 0
+    """with --members K > 1 and --teacher: keep the one member whose weight copy (the teacher's weights on its
+    estimates) scores best on this many train-split episodes, instead of the members' mean (0: the mean)"""
     test_time_flip: Literal["auto", "on", "off"] = "auto"
     """the saved encoder also reads the mirrored image, its estimate mirrored back and averaged in (auto: on for
     ClothFold, off for the diagonal folds, as measured in docs/recipes/train_encoder.md; never with --no-aug)"""
@@ -65,6 +71,9 @@ class TrainEncoderConfig(RunConfig):
     def __post_init__(self):  # checked while parsing, before the run directory exists
         if self.members < 1:
             raise ValueError(f"--members {self.members}: need at least 1 encoder")
+        if self.select_episodes < 0 or self.select_episodes and (self.members < 2 or not self.teacher):
+            raise ValueError(f"--select-episodes {self.select_episodes}: needs --members >= 2 (got {self.members}) "
+                             f"and --teacher (the weight copy plays the episodes)")
 
 
 # --test-time-flip auto: the tasks where it was measured to lift the weight copy on every seed
@@ -106,21 +115,24 @@ def main(argv=None) -> dict:
     flip = cfg.aug and (cfg.test_time_flip == "on" or cfg.test_time_flip == "auto" and cfg.task in TEST_TIME_FLIP_TASKS)
     loss = EncoderLoss(encoder, state_mirror=spec.state_mirror, augment=cfg.aug, flip_prob=cfg.flip_prob, pad=cfg.pad)
     optim = make_optimizer("adamw", encoder.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    with_rounds = bool(cfg.teacher) and cfg.student_rounds > 0
+    total_epochs = cfg.epochs + (cfg.student_rounds * cfg.student_epochs if with_rounds else 0)
+    schedule = {} if cfg.lr_schedule == "constant" else {
+        "schedule": torch.optim.lr_scheduler.CosineAnnealingLR(optim, T_max=total_epochs)}
     n_params = sum(p.numel() for p in encoder.parameters())
     run.print(f"encoder: {cfg.members} x {n_params / cfg.members / 1e6:.2f}M parameters, augmentation "
               f"{'on' if cfg.aug else 'off'}, test-time flip {'on' if flip else 'off'}")
 
     state = RunState(run, {"epoch": 0, "best": {"val_mae": float("inf"), "state_dict": None, "epoch": -1},
-                           "rounds_done": 0, "student_steps": None}, step_key="epoch", counters_key=None,
-                     encoder=encoder, optim=optim)
+                           "rounds_done": 0, "student_steps": None, "member_scores": {}}, step_key="epoch",
+                    counters_key=None,
+                     encoder=encoder, optim=optim, **schedule)
     state.load()
     state.restore_rng()
-    teacher = None if not cfg.teacher or cfg.student_rounds <= 0 else load_teacher(cfg.teacher, task=cfg.task,
-                                                                                   horizon=cfg.horizon)
+    teacher = load_teacher(cfg.teacher, task=cfg.task, horizon=cfg.horizon) if with_rounds or cfg.select_episodes else None
     mask_meta = {"mask_unseen_pickers": fill is not None, "out_of_view_fill": None if fill is None else fill.state_dict()}
     if teacher is not None:  # the student rounds' student acts with the teacher's (masked or not) states
         check_unseen_picker_mask(teacher, mask_meta, encoder_source=f"{run.dir} (this train_encoder.py run)")
-    total_epochs = cfg.epochs + (cfg.student_rounds * cfg.student_epochs if teacher is not None else 0)
 
     def validate() -> dict:
         if val is None:
@@ -129,7 +141,7 @@ def main(argv=None) -> dict:
         return spec.state_error_cm(torch.cat(errs))
 
     while state["epoch"] < total_epochs:
-        if teacher is not None and state["epoch"] == cfg.epochs + state["rounds_done"] * cfg.student_epochs:
+        if with_rounds and state["epoch"] == cfg.epochs + state["rounds_done"] * cfg.student_epochs:
             # The images the weight-copied student sees: its error there is what the teacher's
             # weights must act on (docs/recipes/distill.md), and expert images never show them.
             new, metrics = student_rollout_steps(teacher, encoder, episodes=cfg.student_episodes, image_size=cfg.image_size,
@@ -148,6 +160,8 @@ def main(argv=None) -> dict:
         totals = train_epoch(loss, optim, epoch_train, cfg.batch_size, loss_key="loss_encoder",
                              metrics=("loss_encoder", "mae"), device=cfg.device, desc=f"epoch {state['epoch'] + 1}")
         state["epoch"] += 1
+        if schedule:
+            schedule["schedule"].step()
         val_err = validate()
         val_mae = val_err["mae"]
         # Model selection on the expert validation episodes during the first epochs; after student
@@ -164,13 +178,31 @@ def main(argv=None) -> dict:
             return state["best"]
     best = state["best"]
     encoder.load_state_dict(best["state_dict"])
-    if flip:  # the saved encoder also reads the mirrored image (training, validation and rounds read it once)
-        encoder = EncoderEnsemble(list(getattr(encoder, "members", [encoder])), state_mirror=spec.state_mirror)
+    mirror = spec.state_mirror if flip else None  # the saved encoder also reads the mirrored image, if flip
+    selected = None
+    if cfg.select_episodes:
+        # Which of several encoders trained alike the teacher's weights fold well with is not told by
+        # their errors on held-out images (docs/recipes/train_encoder.md): the copy's own episodes tell.
+        scores = state["member_scores"]
+        for k, member in enumerate(encoder.members):
+            if k not in scores:
+                scores[k] = weight_copy_scores(teacher, EncoderEnsemble([member], state_mirror=mirror),
+                                               episodes=cfg.select_episodes, seed=cfg.seed + 9000).tolist()
+                run.print(f"member {k}: weight copy {sum(scores[k]) / len(scores[k]):.3f} on {cfg.select_episodes} "
+                          f"train-split episodes")
+                state.save()
+        selected = max(scores, key=lambda k: sum(scores[k]) / len(scores[k]))
+        run.log(state["epoch"], {f"select/member{k}_normalized_performance": sum(v) / len(v) for k, v in scores.items()})
+        run.print(f"--select-episodes: member {selected} kept")
+        encoder = encoder.members[selected]
+    if flip:  # training, validation and rounds read each image once
+        encoder = EncoderEnsemble(list(getattr(encoder, "members", [encoder])), state_mirror=mirror)
         groups = ", ".join(f"{k.removesuffix('_cm')} {v:.2f} cm" for k, v in validate().items() if k != "mae")
         run.print(f"--test-time-flip: validation error with the mirrored view averaged in: {groups}")
     save_encoder(run.dir / "encoder.pt", encoder.cpu(), task=cfg.task,
                  extra={"val_mae": best["val_mae"], "val_error_cm": best.get("val_error_cm"), "epoch": best["epoch"],
-                        "aug": cfg.aug, "dataset": str(path), "student_rounds": state["rounds_done"], **mask_meta})
+                        "aug": cfg.aug, "dataset": str(path), "student_rounds": state["rounds_done"],
+                        "member_scores": dict(state["member_scores"]) or None, "selected_member": selected, **mask_meta})
     run.finish()
     run.print(f"encoder.pt: epoch {best['epoch']}, validation MAE {best['val_mae']:.4f} "
               f"(state units, mean over {spec.state_dim} dims)")

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import nn
@@ -47,6 +48,7 @@ __all__ = [
     "save_image_policy",
     "weight_copied_student",
     "student_rollout_steps",
+    "weight_copy_scores",
     "check_unseen_picker_mask",
     "load_teacher_and_encoder",
 ]
@@ -336,18 +338,10 @@ def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes
     state group (``task_spec(task).state_error_cm``; against the state the teacher reads, its
     out-of-view pickers masked when its normaliser carries a fill). The returned ``"state"`` is raw,
     or masked by ``label_fill`` (the labels of an encoder trained with ``--mask-unseen-pickers``)."""
-    import copy
+    from trakdis.envs import task_spec
 
-    from trakdis.envs import close_env, task_spec
-    from trakdis.evaluation import run_episodes
-
-    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
-    env = handle.make_env(num_envs=num_envs, split="train", image_size=image_size)
-    try:
-        res = run_episodes(env, handle.make_policy(), episodes, max_steps=teacher.horizon, keep_episodes=True,
-                           seed=seed, desc="student rollouts")
-    finally:
-        close_env(env)
+    res = _weight_copy_episodes(teacher, encoder, episodes=episodes, seed=seed, image_size=image_size,
+                                num_envs=num_envs, keep_episodes=True, desc="student rollouts")
     steps = torch.cat([ep.select("pixels", "state", "state_estimate").to_tensordict() for ep in res.episodes])
     fill = None if teacher.normalizer is None else teacher.normalizer.fill
     target = steps["state"] if fill is None else fill.mask(steps["state"])  # what the encoder is trained to output
@@ -356,6 +350,33 @@ def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes
     if label_fill is not None:
         steps.set("state", label_fill.mask(steps["state"]))
     return steps, {"normalized_performance": float(res.final_performance.mean()), **err}
+
+
+def weight_copy_scores(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int = 32,
+                       num_envs: int = 2) -> np.ndarray:
+    """The final normalized performance ``[episodes]`` of ``episodes`` train-split episodes (configurations
+    drawn with ``seed``: the same for every encoder) of the weight-copied student of ``teacher`` acting on
+    a frozen copy of ``encoder``'s estimates: how well the teacher's weights fold with this encoder
+    (``train_encoder.py --select-episodes``, a selection among encoders)."""
+    res = _weight_copy_episodes(teacher, encoder, episodes=episodes, seed=seed, image_size=image_size,
+                                num_envs=num_envs, keep_episodes=False, desc="weight copy")
+    return np.asarray(res.final_performance, dtype=np.float64)
+
+
+def _weight_copy_episodes(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int,
+                          num_envs: int, keep_episodes: bool, desc: str):
+    import copy
+
+    from trakdis.envs import close_env
+    from trakdis.evaluation import run_episodes
+
+    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
+    env = handle.make_env(num_envs=num_envs, split="train", image_size=image_size)
+    try:
+        return run_episodes(env, handle.make_policy(), episodes, max_steps=teacher.horizon, keep_episodes=keep_episodes,
+                            seed=seed, desc=desc)
+    finally:
+        close_env(env)
 
 
 def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,

@@ -50,3 +50,33 @@ def test_two_pickers_and_bad_input():
     assert grasp_report("ClothFold", TensorDict({"action": torch.ones(4, 8)}, batch_size=[4])) is None
     with pytest.raises(ValueError, match=r"state \[T, 18\]"):
         grasp_report("ClothFold", TensorDict({"state": torch.zeros(4, 15), "action": torch.ones(4, 8)}, batch_size=[4]))
+
+
+def test_the_estimate_at_the_first_close():
+    # the policy read the picker 5 cm off in x: at its first close (6 cm above the corner) it believed
+    # sqrt(6^2 + 5^2) cm, and its error in the picker-to-corner vector is the 5 cm shift
+    ep = _episode([0.0, 0.0, 0.10], close_at=2)
+    estimate = ep["state"].clone()
+    estimate[:, 12] += 0.05
+    ep["state_estimate"] = estimate
+    report = grasp_report(TASK, ep)
+    assert report["picker0_first_close_cm"] == pytest.approx(6.0, abs=1e-4)
+    assert report["picker0_close_estimate_cm"] == pytest.approx(math.hypot(6.0, 5.0), abs=1e-4)
+    assert report["picker0_close_offset_error_cm"] == pytest.approx(5.0, abs=1e-4)
+    # an estimate that put the picker on the corner: a far close the encoder caused
+    onto = ep["state"].clone()
+    onto[:, 12:15] = onto[:, 0:3]
+    ep["state_estimate"] = onto
+    fooled = grasp_report(TASK, ep)
+    assert fooled["picker0_close_estimate_cm"] == pytest.approx(0.0, abs=1e-4)
+    assert fooled["picker0_close_offset_error_cm"] == pytest.approx(6.0, abs=1e-4)
+    never = _episode([0.0, 0.0, 0.10], close_at=None)
+    never["state_estimate"] = never["state"].clone()
+    assert math.isnan(grasp_report(TASK, never)["picker0_close_estimate_cm"])
+    line = summarize_grasps(TASK, [report, fooled, grasp_report(TASK, never)])
+    assert line.startswith(f"grasps: 2 of 2 first closes farther than {FAR_CLOSE_CM:g} cm from their corner "
+                           "(1 of them within it in the estimate);")
+    bad = _episode([0.0, 0.0, 0.10], close_at=2)
+    bad["state_estimate"] = torch.zeros(6, 12)
+    with pytest.raises(ValueError, match="state_estimate has shape"):
+        grasp_report(TASK, bad)

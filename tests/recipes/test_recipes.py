@@ -6,6 +6,7 @@ import re
 import cv2
 import pandas as pd
 import pytest
+import torch
 
 from trakdis.utils.checkpoint import load_checkpoint
 from trakdis.modules import EncoderEnsemble, find_dt_actor
@@ -148,6 +149,22 @@ def test_train_encoder_stop_resume(workdir, dataset, encoder):
     assert json.loads((run_dir / "config.json").read_text())["aug"] is False
 
 
+def test_train_encoder_cosine_schedule_resumes(workdir, dataset):
+    """--lr-schedule cosine: the learning rate falls to 0 at the last epoch, also across a --stop-after /
+    --resume (the schedule's state is in the checkpoint; a fresh one would end at a quarter of --lr)."""
+    args = ["--name", "enc_cos", "--horizon", HORIZON, *DATA, "--epochs", 3, "--batch-size", 8, "--channels", 4, 4, 4, 4,
+            "--hidden-dim", 16, "--lr", 1e-3, "--lr-schedule", "cosine"]
+    run_recipe(workdir, "train_encoder", *args, "--stop-after", 1)
+    run_dir = workdir / "runs" / "train_encoder" / "enc_cos"
+    after_one = load_checkpoint(run_dir / "checkpoint.pt")
+    assert after_one["optim"]["param_groups"][0]["lr"] == pytest.approx(1e-3 * 0.75)  # (1 + cos(pi / 3)) / 2
+    run_recipe(workdir, "train_encoder", "--resume", "--name", "enc_cos")
+    final = load_checkpoint(run_dir / "checkpoint.pt")
+    assert final["schedule"]["last_epoch"] == 3
+    assert final["optim"]["param_groups"][0]["lr"] == pytest.approx(0.0, abs=1e-12)
+    assert (run_dir / "encoder.pt").exists()
+
+
 def test_train_encoder_extra_noisy_data_and_keypoint_layout(workdir, dataset):
     """--extra-noise collects (once) and adds a noisier dataset to the training images only; the
     keypoint layout trains, saves its options and reports the error per state group in cm."""
@@ -233,6 +250,8 @@ def test_evaluate_student_and_expert(workdir, student):
     assert len(episodes) == 6 and (episodes["length"] == HORIZON).all()
     # where each picker first closed, and whether its corner was lifted (trakdis.evaluation.grasp_report)
     assert {"picker0_first_close_cm", "picker0_corner_lifted", "picker1_first_close_cm"} <= set(episodes.columns)
+    # for a policy reading an estimate, what it believed at that first close (the decision the encoder serves)
+    assert {"picker0_close_estimate_cm", "picker1_close_offset_error_cm"} <= set(episodes.columns)
     # the encoder's error on the states each episode visited, per state group
     assert (episodes["encoder_corners_cm"] > 0).all() and (episodes["encoder_pickers_cm"] > 0).all()
     assert summary["mean"].iloc[0] == pytest.approx(episodes[episodes.state_noise == 0]["final_normalized_performance"].mean())
@@ -316,6 +335,8 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
     ("distill", ["--picker-odometry", "--data.action-labels", "expert"], r"integrates the executed actions"),
     ("train_encoder", ["--members", "0"], r"--members 0: need at least 1 encoder"),
+    ("train_encoder", ["--select-episodes", "3", "--teacher", "t.pt"], r"--select-episodes 3: needs --members >= 2"),
+    ("train_encoder", ["--select-episodes", "3", "--members", "2"], r"and --teacher"),
 ])
 def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, capsys, recipe, args, message):
     # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
@@ -365,6 +386,28 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     assert "student before not evaluated, after not evaluated" in out.stdout
     again = run_recipe(workdir, "pipeline", "--resume", "--name", "pipe")
     assert again.stdout.count("skipped") == 6
+
+
+def test_train_encoder_keeps_the_member_whose_weight_copy_folds_best(workdir, teacher):
+    """--members 2 --select-episodes N: each member's weight copy plays the same N train-split episodes and
+    the file holds the best one alone (with the flip), its scores recorded."""
+    out = run_recipe(workdir, "train_encoder", "--name", "enc-select", "--horizon", HORIZON, *DATA, "--epochs", 1,
+                     "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--threads", 1,
+                     "--teacher", "runs/online_dt/teacher", "--student-rounds", 0, "--members", 2,
+                     "--select-episodes", 2, "--test-time-flip", "on")
+    assert "member 0: weight copy" in out.stdout and "member 1: weight copy" in out.stdout
+    run_dir = workdir / "runs" / "train_encoder" / "enc-select"
+    saved = load_checkpoint(run_dir / "encoder.pt")
+    means = {k: sum(v) / len(v) for k, v in saved["member_scores"].items()}
+    assert set(means) == {0, 1} and all(len(v) == 2 for v in saved["member_scores"].values())
+    kept = saved["selected_member"]
+    assert means[kept] == max(means.values()) and f"member {kept} kept" in out.stdout
+    encoder, _ = load_encoder(run_dir)
+    assert isinstance(encoder, EncoderEnsemble) and len(encoder.members) == 1 and encoder.state_mirror is not None
+    trained = load_checkpoint(run_dir / "checkpoint.pt")["encoder"]  # both members, as trained
+    for name, value in encoder.members[0].state_dict().items():
+        assert torch.equal(value, trained[f"members.{kept}.{name}"]), name
+    assert read_log(run_dir)[f"select/member{kept}_normalized_performance"].notna().sum() == 1
 
 
 def test_train_encoder_on_the_weight_copied_students_states(workdir, teacher):

@@ -5,7 +5,9 @@ vertex or nothing; its corner then stays on the table, and a learned policy that
 again fails the episode (docs/recipes/online_dt.md, "Where the pipeline's teacher fails").
 :func:`grasp_report` reads one played episode (its true ``"state"`` and its ``"action"``, as
 :func:`~trakdis.evaluation.run_episodes` passes them to ``on_episode``) and tells, per picker,
-how far from its corner it first closed and whether the corner was ever lifted.
+how far from its corner it first closed and whether the corner was ever lifted; for a policy that
+read an estimate of the state (``"state_estimate"``, a student), also how far it believed it was at
+that step and how wrong that belief was: the encoder's error at the decision that matters.
 """
 from __future__ import annotations
 
@@ -30,7 +32,13 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
     source corner at the first step whose grasp command is > 0, the env's threshold; NaN if it never
     closed) and ``picker{p}_corner_lifted`` (whether its source corner ever rose ``LIFTED_CM`` above
     its target corner). ``episode``: ``[T]`` steps with ``"state"`` (the true reduced state) and
-    ``"action"``. None if the episode carries no ``"state"``."""
+    ``"action"``. None if the episode carries no ``"state"``.
+
+    With ``"state_estimate"`` (``[T, state_dim]``, what the policy read) also, at that first close,
+    ``picker{p}_close_estimate_cm`` (the picker-to-corner distance the estimate showed) and
+    ``picker{p}_close_offset_error_cm`` (the length of the estimate's error in the picker-to-corner
+    vector, the quantity the grasp depends on: a far close with a small estimated distance is the
+    encoder's fault, one with a large estimated distance the policy's). NaN if it never closed."""
     if "state" not in episode.keys():
         return None
     spec = task_spec(task)
@@ -39,15 +47,25 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
         raise ValueError(f"grasp_report: {task} episodes need state [T, {spec.state_dim}] and action "
                          f"[T, {spec.action_dim}], got {tuple(state.shape)} and {tuple(action.shape)}")
     pickers, corners, targets = fold_points(task, state)  # [T, P, 3] each
+    estimate = episode.get("state_estimate", None)
+    if estimate is not None and estimate.shape != state.shape:
+        raise ValueError(f"grasp_report: {task} episode's state_estimate has shape {tuple(estimate.shape)}, "
+                         f"its state {tuple(state.shape)}")
+    offset = pickers - corners  # [T, P, 3]: the picker relative to its source corner
+    offset_hat = None
+    if estimate is not None:
+        pickers_hat, corners_hat, _ = fold_points(task, estimate)
+        offset_hat = pickers_hat - corners_hat
     closed = action.reshape(*action.shape[:-1], spec.num_pickers, 4)[..., 3] > 0  # [T, P]
     out: dict[str, float | bool] = {}
     for p in range(spec.num_pickers):
         closes = closed[:, p].nonzero()
-        if len(closes):
-            t = int(closes[0, 0])
-            out[f"picker{p}_first_close_cm"] = 100.0 * float((pickers[t, p] - corners[t, p]).norm())
-        else:
-            out[f"picker{p}_first_close_cm"] = math.nan
+        t = int(closes[0, 0]) if len(closes) else None
+        out[f"picker{p}_first_close_cm"] = math.nan if t is None else 100.0 * float(offset[t, p].norm())
+        if offset_hat is not None:
+            out[f"picker{p}_close_estimate_cm"] = math.nan if t is None else 100.0 * float(offset_hat[t, p].norm())
+            out[f"picker{p}_close_offset_error_cm"] = (
+                math.nan if t is None else 100.0 * float((offset_hat[t, p] - offset[t, p]).norm()))
         rise = corners[:, p, 2] - targets[:, p, 2]
         out[f"picker{p}_corner_lifted"] = bool(rise.max() * 100.0 >= LIFTED_CM)
     return out
@@ -55,11 +73,16 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
 
 def summarize_grasps(task: str, reports: Sequence[dict[str, float | bool]]) -> str:
     """One line over the episodes' :func:`grasp_report` s: the first closes farther than
-    ``FAR_CLOSE_CM`` from their corner, and the episodes with a source corner never lifted."""
+    ``FAR_CLOSE_CM`` from their corner (and, for a policy that read an estimate, how many of those
+    the estimate showed within that distance: the encoder's misses), and the episodes with a source
+    corner never lifted."""
     pickers = range(task_spec(task).num_pickers)
-    firsts = [r[f"picker{p}_first_close_cm"] for r in reports for p in pickers]
-    closed = [d for d in firsts if not math.isnan(d)]
-    far = sum(d > FAR_CLOSE_CM for d in closed)
+    closes = [(r[f"picker{p}_first_close_cm"], r.get(f"picker{p}_close_estimate_cm")) for r in reports for p in pickers]
+    closed = [(d, e) for d, e in closes if not math.isnan(d)]
+    far = [e for d, e in closed if d > FAR_CLOSE_CM]
     unlifted = sum(not all(r[f"picker{p}_corner_lifted"] for p in pickers) for r in reports)
-    return (f"grasps: {far} of {len(closed)} first closes farther than {FAR_CLOSE_CM:g} cm from their corner; "
-            f"a source corner never lifted in {unlifted} of {len(reports)} episodes")
+    believed = ""
+    if far and all(e is not None for e in far):
+        believed = f" ({sum(e <= FAR_CLOSE_CM for e in far)} of them within it in the estimate)"
+    return (f"grasps: {len(far)} of {len(closed)} first closes farther than {FAR_CLOSE_CM:g} cm from their "
+            f"corner{believed}; a source corner never lifted in {unlifted} of {len(reports)} episodes")
