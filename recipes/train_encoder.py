@@ -124,9 +124,8 @@ def main(argv=None) -> dict:
               f"{'on' if cfg.aug else 'off'}, test-time flip {'on' if flip else 'off'}")
 
     state = RunState(run, {"epoch": 0, "best": {"val_mae": float("inf"), "state_dict": None, "epoch": -1},
-                           "rounds_done": 0, "student_steps": None, "member_scores": {}}, step_key="epoch",
-                    counters_key=None,
-                     encoder=encoder, optim=optim, **schedule)
+                           "rounds_done": 0, "student_steps": None, "member_scores": {}},
+                     step_key="epoch", counters_key=None, encoder=encoder, optim=optim, **schedule)
     state.load()
     state.restore_rng()
     teacher = load_teacher(cfg.teacher, task=cfg.task, horizon=cfg.horizon) if with_rounds or cfg.select_episodes else None
