@@ -190,8 +190,9 @@ def main(argv=None) -> dict:
                 run.print(f"member {k}: weight copy {sum(scores[k]) / len(scores[k]):.3f} on {cfg.select_episodes} "
                           f"train-split episodes")
                 state.save()
-        selected = max(scores, key=lambda k: sum(scores[k]) / len(scores[k]))
-        run.log(state["epoch"], {f"select/member{k}_normalized_performance": sum(v) / len(v) for k, v in scores.items()})
+        means = {k: sum(v) / len(v) for k, v in scores.items()}
+        selected = max(means, key=means.get)
+        run.log(state["epoch"], {f"select/member{k}_normalized_performance": m for k, m in means.items()})
         run.print(f"--select-episodes: member {selected} kept")
         encoder = encoder.members[selected]
     if flip:  # training, validation and rounds read each image once
