@@ -16,8 +16,8 @@
    25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a
    low-priority background process from the end of stage 1 on, on the core that the encoder's and
    the student's training leave idle (``--no-background-expert``: after them); the teacher's and
-   the student's, and the student stage's selection episodes, on 2 worker processes
-   (``--no-parallel``: in turn). The numbers are the same.
+   the student's, the encoder stage's rollouts and selection episodes and the student stage's selection
+   episodes, on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
    The stages evaluate nothing themselves (``TEACHER_EVAL``, ``STUDENT_EVAL``: ``--eval-episodes 0``;
    a stage's own ``--eval-episodes`` in its ``--*-args`` wins): the table has the evaluations.
 
@@ -71,8 +71,8 @@ class PipelineConfig(RunConfig):
     background_expert: bool = True
     """evaluate the scripted expert in a low-priority background process while the encoder and student train"""
     parallel: bool = True
-    """evaluate the teacher and the student, and play the student's selection episodes, on 2 worker processes
-    (--no-parallel: in turn; the same numbers)"""
+    """evaluate the teacher and the student, and play the encoder's and the student's rollouts and selection
+    episodes, on 2 worker processes (--no-parallel: in turn; the same numbers)"""
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -89,7 +89,8 @@ def main(argv=None) -> pd.DataFrame:
                         background=cfg.background_expert)
     with stages.cleanup(expert):  # an error before it finished: the expert's background stage is stopped
         encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
-                             ["--task", cfg.task, "--teacher", str(teacher), *mask, *shlex.split(cfg.encoder_args)])
+                             ["--task", cfg.task, "--teacher", str(teacher), *mask, *parallel,
+                              *shlex.split(cfg.encoder_args)])
         student = stages.run("distill", f"{name}-student", "policy.pt",
                              ["--teacher", str(teacher), "--encoder", str(encoder), *STUDENT_EVAL, *parallel,
                               *shlex.split(cfg.student_args)])

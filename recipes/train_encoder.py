@@ -67,6 +67,8 @@ class TrainEncoderConfig(RunConfig):
     student_epochs: int = 5  # passes over all training images after each round's rollouts
     mask_unseen_pickers: bool = False
     """label each picker out of the camera view with a fixed sentinel xyz (for a teacher trained so)"""
+    parallel: bool = False
+    """play the student rounds' and --select-episodes' episodes on 2 worker processes (ParallelEnv; the same episodes)"""
 
     def __post_init__(self):  # checked while parsing, before the run directory exists
         if self.members < 1:
@@ -144,7 +146,8 @@ def main(argv=None) -> dict:
             # The images the weight-copied student sees: its error there is what the teacher's
             # weights must act on (docs/recipes/distill.md), and expert images never show them.
             new, metrics = student_rollout_steps(teacher, encoder, episodes=cfg.student_episodes, image_size=cfg.image_size,
-                                                 seed=cfg.seed + 5000 + state["rounds_done"], label_fill=fill)
+                                                 seed=cfg.seed + 5000 + state["rounds_done"], label_fill=fill,
+                                                 parallel=cfg.parallel)
             new = new.to_dict()  # plain tensors: the checkpoint loader refuses TensorDicts
             old = state["student_steps"]
             state["student_steps"] = new if old is None else {k: torch.cat([old[k], v]) for k, v in new.items()}
@@ -186,7 +189,8 @@ def main(argv=None) -> dict:
         for k, member in enumerate(encoder.members):
             if k not in scores:
                 scores[k] = weight_copy_scores(teacher, EncoderEnsemble([member], state_mirror=mirror),
-                                               episodes=cfg.select_episodes, seed=cfg.seed + 9000).tolist()
+                                               episodes=cfg.select_episodes, seed=cfg.seed + 9000,
+                                               parallel=cfg.parallel).tolist()
                 run.print(f"member {k}: weight copy {sum(scores[k]) / len(scores[k]):.3f} on {cfg.select_episodes} "
                           f"train-split episodes")
                 state.save()

@@ -131,6 +131,28 @@ def test_student_rollout_steps(tmp_path):
     assert torch.equal(masked["pixels"], steps["pixels"]) and torch.equal(masked["state"], fill.mask(steps["state"]))
 
 
+def test_weight_copy_episodes_in_worker_processes_are_the_serial_ones(tmp_path):
+    """``parallel=True`` (``train_encoder.py --parallel``): the same episodes, stepped in 2 worker processes."""
+    from trakdis.envs import task_spec
+    from trakdis.policies import student_rollout_steps, weight_copy_scores
+
+    spec = task_spec("ClothFold")
+    cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(spec.state_dim,
+                                                                                          spec.action_dim, horizon=3)
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFold", horizon=3, dt_config=cfg,
+                actor=make_dt_actor(cfg, observation_key="state"), observation_key="state", target_return=-1.0,
+                rtg_scale=1.0)
+    encoder = NormalizedEncoder(StateEncoder(spec.state_dim, channels=(4, 4, 4, 4), hidden_dim=8),
+                                torch.zeros(spec.state_dim), torch.full((spec.state_dim,), 0.1))
+    teacher = load_teacher(tmp_path)
+    serial, metrics = student_rollout_steps(teacher, encoder, episodes=2, seed=3)
+    parallel, metrics_parallel = student_rollout_steps(teacher, encoder, episodes=2, seed=3, parallel=True)
+    assert torch.equal(serial["pixels"], parallel["pixels"]) and torch.equal(serial["state"], parallel["state"])
+    assert metrics == metrics_parallel
+    assert weight_copy_scores(teacher, encoder, episodes=2, seed=3, parallel=True).tolist() == \
+        weight_copy_scores(teacher, encoder, episodes=2, seed=3).tolist()
+
+
 def test_load_teacher_and_encoder_finds_the_latest_runs_and_checks_the_mask(tmp_path):
     from trakdis.policies import load_teacher_and_encoder
     from trakdis.transforms import OutOfViewFill, StateNormalizer

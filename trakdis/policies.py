@@ -329,7 +329,7 @@ def load_teacher_and_encoder(teacher: str | Path, encoder: str | Path, *, root: 
 
 
 def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int,
-                          image_size: int = 32, num_envs: int = 2,
+                          image_size: int = 32, num_envs: int = 2, parallel: bool = False,
                           label_fill: OutOfViewFill | None = None) -> tuple[TensorDict, dict[str, float]]:
     """``(steps, metrics)``: the ``"pixels"`` and true ``"state"`` of every step of ``episodes``
     train-split episodes of the weight-copied student of ``teacher`` acting on a frozen copy of
@@ -337,11 +337,12 @@ def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes
     they went: ``normalized_performance`` (mean at the episodes' end) and the estimate's error per
     state group (``task_spec(task).state_error_cm``; against the state the teacher reads, its
     out-of-view pickers masked when its normaliser carries a fill). The returned ``"state"`` is raw,
-    or masked by ``label_fill`` (the labels of an encoder trained with ``--mask-unseen-pickers``)."""
+    or masked by ``label_fill`` (the labels of an encoder trained with ``--mask-unseen-pickers``).
+    ``parallel``: the ``num_envs`` envs step in worker processes (``ParallelEnv``; the same episodes)."""
     from trakdis.envs import task_spec
 
     res = _weight_copy_episodes(teacher, encoder, episodes=episodes, seed=seed, image_size=image_size,
-                                num_envs=num_envs, keep_episodes=True, desc="student rollouts")
+                                num_envs=num_envs, parallel=parallel, keep_episodes=True, desc="student rollouts")
     steps = torch.cat([ep.select("pixels", "state", "state_estimate").to_tensordict() for ep in res.episodes])
     fill = None if teacher.normalizer is None else teacher.normalizer.fill
     target = steps["state"] if fill is None else fill.mask(steps["state"])  # what the encoder is trained to output
@@ -353,25 +354,26 @@ def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes
 
 
 def weight_copy_scores(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int = 32,
-                       num_envs: int = 2) -> np.ndarray:
+                       num_envs: int = 2, parallel: bool = False) -> np.ndarray:
     """The final normalized performance ``[episodes]`` of ``episodes`` train-split episodes (configurations
     drawn with ``seed``: the same for every encoder) of the weight-copied student of ``teacher`` acting on
     a frozen copy of ``encoder``'s estimates: how well the teacher's weights fold with this encoder
-    (``train_encoder.py --select-episodes``, a selection among encoders)."""
+    (``train_encoder.py --select-episodes``, a selection among encoders). ``parallel``: as in
+    :func:`student_rollout_steps`."""
     res = _weight_copy_episodes(teacher, encoder, episodes=episodes, seed=seed, image_size=image_size,
-                                num_envs=num_envs, keep_episodes=False, desc="weight copy")
+                                num_envs=num_envs, parallel=parallel, keep_episodes=False, desc="weight copy")
     return np.asarray(res.final_performance, dtype=np.float64)
 
 
 def _weight_copy_episodes(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int,
-                          num_envs: int, keep_episodes: bool, desc: str):
+                          num_envs: int, parallel: bool, keep_episodes: bool, desc: str):
     import copy
 
     from trakdis.envs import close_env
     from trakdis.evaluation import run_episodes
 
     handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
-    env = handle.make_env(num_envs=num_envs, split="train", image_size=image_size)
+    env = handle.make_env(num_envs=num_envs, parallel=parallel, split="train", image_size=image_size)
     try:
         return run_episodes(env, handle.make_policy(), episodes, max_steps=teacher.horizon, keep_episodes=keep_episodes,
                             seed=seed, desc=desc)
