@@ -59,6 +59,9 @@ class TrainEncoderConfig(RunConfig):
     ClothFold, off for the diagonal folds, as measured in docs/recipes/train_encoder.md; never with --no-aug)"""
     extra_noise: tuple[float, ...] = ()
     """also train on datasets of the same size collected with these expert movement noises"""
+    extra_aim_error: tuple[float, ...] = ()
+    """also train on datasets of the same size whose expert aims at source corners misplaced by these stds (m):
+    images of missed grasps, labelled with the true state (the main dataset's movement noise)"""
     val_fraction: float = 0.1  # fraction of the episodes held out for validation
     teacher: str = ""
     """teacher policy file or online_dt run directory: also train on the weight-copied student's images"""
@@ -94,7 +97,8 @@ def main(argv=None) -> dict:
     # the expert images and states, split by episode; --extra-noise datasets join the training steps
     path, train, val, train_episodes, val_episodes = load_train_val_steps(
         cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, keys=("pixels", "state"),
-        val_fraction=cfg.val_fraction, image_size=cfg.image_size, extra_noise=cfg.extra_noise, log=run.print,
+        val_fraction=cfg.val_fraction, image_size=cfg.image_size, extra_noise=cfg.extra_noise,
+        extra_aim_error=cfg.extra_aim_error, log=run.print,
         progress=cfg.progress)
     # --mask-unseen-pickers: the labels (training and validation) are what the teacher reads, a picker
     # out of the image replaced by the sentinel the encoder then learns to output for it

@@ -146,6 +146,18 @@ def test_real_cloth_env_tiny(tmp_path):
     assert steps["truncated"][:, -1].all() and (meta["lengths"] == 4).all()
     assert "final_normalized_performance_mean" in meta["stats"]
     assert steps["pixels"].float().std() > 0
+    # a misled expert (aim_error): the same cloths and start, another aim; recorded in the config
+    aimed = collect_expert_dataset(tmp_path / "aimed", "ClothFoldDiagonalPinned", num_episodes=2, horizon=4,
+                                   image_size=16, progress=False, aim_error=0.05)
+    aimed_steps, aimed_meta = load_expert_dataset(aimed)
+    assert aimed_meta["config"]["aim_error"] == 0.05 and "aim_error" not in meta["config"]
+    assert torch.equal(aimed_steps["state"][:, 0], steps["state"][:, 0])
+    assert not torch.equal(aimed_steps["action"][:, 0], steps["action"][:, 0])
+    for bad, kw in ((-0.01, {}), (0.05, {"make_policy_fn": make_toy_policy})):
+        with pytest.raises(ValueError, match="aim_error"):
+            collect_expert_dataset(tmp_path / "bad", "ClothFoldDiagonalPinned", num_episodes=1, horizon=2,
+                                   progress=False, aim_error=bad, **kw)
+    assert not (tmp_path / "bad").exists() and not partial_path(tmp_path / "bad").exists()
 
 
 _KILL_SCRIPT = """

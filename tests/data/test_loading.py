@@ -20,6 +20,8 @@ def test_default_name():
     cfg = DataConfig(root="d", episodes=7, expert_noise=0.1)
     assert default_dataset_path(cfg, task="ClothFold", horizon=50, pixels=True).as_posix() == "d/ClothFold_7ep_h50_noise0.1_px32"
     assert default_dataset_path(DataConfig(path="x/y"), task="ClothFold", horizon=50, pixels=False).as_posix() == "x/y"
+    aimed = DataConfig(root="d", episodes=7, expert_noise=0.1, aim_error=0.03)  # a misled expert's: its own name
+    assert default_dataset_path(aimed, task="ClothFold", horizon=50, pixels=True).as_posix() == "d/ClothFold_7ep_h50_noise0.1_aim0.03_px32"
 
 
 @pytest.mark.parametrize("found", [None, EXPERT_VERSION - 1])
@@ -135,7 +137,7 @@ def _episodes(n, horizon, state_dim=2):
                        "normalized_performance": torch.zeros(n, horizon, 1)}, [n, horizon])
 
 
-def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_noise_datasets(tmp_path, monkeypatch):
+def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_datasets(tmp_path, monkeypatch):
     import torch
 
     from trakdis.data import load_train_val_steps, loading, split_episodes_train_val
@@ -144,7 +146,10 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_noise_dataset
     main = default_dataset_path(cfg, task="ClothFold", horizon=3, pixels=True)
     extra = default_dataset_path(DataConfig(root=str(tmp_path), episodes=5, expert_noise=0.3), task="ClothFold",
                                  horizon=3, pixels=True)
-    datasets = {main: (_episodes(5, 3), torch.tensor([3, 2, 3, 1, 3])), extra: (_episodes(2, 3), torch.tensor([3, 2]))}
+    aimed = default_dataset_path(DataConfig(root=str(tmp_path), episodes=5, aim_error=0.03), task="ClothFold",
+                                 horizon=3, pixels=True)
+    datasets = {main: (_episodes(5, 3), torch.tensor([3, 2, 3, 1, 3])), extra: (_episodes(2, 3), torch.tensor([3, 2])),
+                aimed: (_episodes(1, 3), torch.tensor([2]))}
     seeds = {}
 
     def ensure_dataset(cfg, *, task, horizon, seed, pixels, **kw):
@@ -158,14 +163,15 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_noise_dataset
     lines = []
     path, train, val, train_eps, val_eps = load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7,
                                                                 keys=("pixels", "state"), val_fraction=0.4,
-                                                                extra_noise=(0.3,), log=lines.append)
-    assert path == main and seeds == {main: 7, extra: 8}
+                                                                extra_noise=(0.3,), extra_aim_error=(0.03,),
+                                                                log=lines.append)
+    assert path == main and seeds == {main: 7, extra: 8, aimed: 9}
     expected_train, expected_val = split_episodes_train_val(5, 0.4, seed=7)
     assert train_eps.tolist() == expected_train.tolist() and val_eps.tolist() == expected_val.tolist()
     lengths = [3, 2, 3, 1, 3]
     assert val.shape[0] == sum(lengths[i] for i in val_eps) and set(train.keys()) == {"pixels", "state"}
-    assert train.shape[0] == sum(lengths[i] for i in train_eps) + 5  # + all the extra dataset's 3 + 2 steps
-    assert lines == [f"training images +5 from {extra}"]
+    assert train.shape[0] == sum(lengths[i] for i in train_eps) + 5 + 2  # + all the extra datasets' 3 + 2 and 2 steps
+    assert lines == [f"training images +5 from {extra}", f"training images +2 from {aimed}"]
     assert load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.0).val is None
 
 

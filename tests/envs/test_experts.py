@@ -90,3 +90,40 @@ def test_noise_is_seeded_and_bounded():
 def test_wrong_state_shape():
     with pytest.raises(ValueError, match="last dim 15"):
         expert_action("ClothFoldDiagonalPinned", np.zeros(18), 0)
+
+
+def test_aim_error_misplaces_the_source_corners_per_episode():
+    """``aim_error``: the expert acts as on the state with each source corner moved horizontally by an offset
+    drawn when an episode starts (step_count 0) and held until the next start, per batch element."""
+    from trakdis.envs.experts import FOLD_PLAN
+
+    task, spec = "ClothFold", task_spec("ClothFold")
+    env = ClothEnv(task=task)
+    state = torch.as_tensor(np.stack([env.reset(seed=s)[0]["state"] for s in (0, 1)]), dtype=torch.float32)
+    policy = ExpertPolicy(task, aim_error=0.05, seed=0)
+
+    def act(steps):
+        td = TensorDict({"state": state, "step_count": torch.tensor(steps).view(2, 1)}, batch_size=[2])
+        return policy(td)["action"].numpy()
+
+    def expected(offsets, steps):  # offsets [2, pickers, 2]
+        moved = state.numpy().copy()
+        for p, (source, _) in enumerate(FOLD_PLAN[task]):
+            moved[:, 3 * source:3 * source + 2] += offsets[:, p]
+        return np.stack([expert_action(task, moved[i], steps[i]) for i in range(2)])
+
+    first = act([0, 0])
+    aim = policy._aim.copy()
+    assert aim.shape == (2, spec.num_pickers, 2) and 0.005 < np.abs(aim).mean() < 0.2
+    np.testing.assert_allclose(first, expected(aim, [0, 0]), atol=1e-6)
+    assert not np.allclose(first, ExpertPolicy(task)(TensorDict(
+        {"state": state, "step_count": torch.zeros(2, 1, dtype=torch.int64)}, batch_size=[2]))["action"].numpy())
+    np.testing.assert_allclose(act([5, 5]), expected(aim, [5, 5]), atol=1e-6)  # held within the episode
+    act([0, 6])  # the first element starts a new episode, the second goes on
+    assert not np.allclose(policy._aim[0], aim[0]) and np.array_equal(policy._aim[1], aim[1])
+    again = ExpertPolicy(task, aim_error=0.05, seed=0)
+    again(TensorDict({"state": state, "step_count": torch.zeros(2, 1, dtype=torch.int64)}, batch_size=[2]))
+    assert np.array_equal(again._aim, aim)  # seeded
+    for bad in (-0.01, float("nan")):
+        with pytest.raises(ValueError, match="aim_error"):
+            ExpertPolicy(task, aim_error=bad)

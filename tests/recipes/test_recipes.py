@@ -166,15 +166,17 @@ def test_train_encoder_cosine_schedule_resumes(workdir, dataset):
 
 
 def test_train_encoder_extra_noisy_data_and_keypoint_layout(workdir, dataset):
-    """--extra-noise collects (once) and adds a noisier dataset to the training images only; the
-    keypoint layout trains, saves its options and reports the error per state group in cm."""
+    """--extra-noise and --extra-aim-error collect (once) and add a noisier and a misled expert's dataset to the
+    training images only; the keypoint layout trains, saves its options and reports the error per state group in cm."""
     out = run_recipe(workdir, "train_encoder", "--name", "enc_extra", "--horizon", HORIZON, *DATA, "--epochs", 1,
                      "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--extra-noise", 0.4,
-                     "--head", "keypoints", "--stem-stride", 1, "--coord-channels")
+                     "--extra-aim-error", 0.03, "--head", "keypoints", "--stem-stride", 1, "--coord-channels")
     assert (workdir / "datasets" / f"ClothFold_4ep_h{HORIZON}_noise0.4_px32" / "meta.json").exists()
-    # 4 episodes of 6 steps: 3 train + 1 validation from the main dataset, + 4 noisy ones for training
-    assert f"{7 * HORIZON} training / {HORIZON} validation images" in out.stdout
-    assert f"training images +{4 * HORIZON} from" in out.stdout
+    aimed = workdir / "datasets" / f"ClothFold_4ep_h{HORIZON}_noise0.15_aim0.03_px32"
+    assert json.loads((aimed / "meta.json").read_text())["config"]["aim_error"] == 0.03
+    # 4 episodes of 6 steps: 3 train + 1 validation from the main dataset, + 4 noisy and 4 misled ones for training
+    assert f"{11 * HORIZON} training / {HORIZON} validation images" in out.stdout
+    assert out.stdout.count(f"training images +{4 * HORIZON} from") == 2
     assert "corners" in out.stdout and "pickers" in out.stdout
     saved = load_checkpoint(workdir / "runs" / "train_encoder" / "enc_extra" / "encoder.pt")
     assert saved["encoder_kwargs"]["head"] == "keypoints" and set(saved["val_error_cm"]) == {"corners_cm", "pickers_cm"}

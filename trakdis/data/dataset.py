@@ -135,10 +135,10 @@ def _default_env_fn(task, from_pixels, image_size, split, horizon):
     return make_env(task, from_pixels=from_pixels, image_size=image_size, split=split, horizon=horizon)
 
 
-def _default_policy_fn(task, noise, seed):
+def _default_policy_fn(task, noise, aim_error, seed):
     from trakdis.envs import ExpertPolicy
 
-    return ExpertPolicy(task, noise=noise, seed=seed)
+    return ExpertPolicy(task, noise=noise, seed=seed, aim_error=aim_error)
 
 
 def _batch_to_episodes(batch: TensorDictBase, horizon: int, keys: list[str]) -> tuple[TensorDict, torch.Tensor]:
@@ -179,6 +179,7 @@ def collect_expert_dataset(
     make_env_fn: Callable[[], Any] | None = None,
     make_policy_fn: Callable[[int | None], TensorDictModuleBase] | None = None,
     mp_start_method: str | None = None,
+    aim_error: float = 0.0,
 ) -> Path:
     """Collects ``num_episodes`` expert episodes of ``task`` into a dataset directory at ``path``.
 
@@ -207,6 +208,8 @@ def collect_expert_dataset(
             above); must be picklable when ``num_workers > 1``.
         make_policy_fn: builds the policy from a seed (default: ``ExpertPolicy(task, noise, seed)``).
         mp_start_method: start method of the ``ParallelEnv`` workers (default: TorchRL's choice).
+        aim_error: the expert aims at source corners misplaced by this std (metres; ``ExpertPolicy``'s
+            ``aim_error``: missed grasps); recorded in the config when > 0.
 
     Returns:
         The dataset path. Resume a killed collection by calling again with the same arguments.
@@ -217,6 +220,10 @@ def collect_expert_dataset(
             f"collect_expert_dataset: num_episodes ({num_episodes}), num_workers ({num_workers}) and horizon "
             f"({horizon}) must be >= 1"
         )
+    if not aim_error >= 0:
+        raise ValueError(f"collect_expert_dataset: aim_error must be >= 0 (metres), got {aim_error}")
+    if aim_error and make_policy_fn is not None:
+        raise ValueError("collect_expert_dataset: aim_error applies to the scripted expert, not to make_policy_fn")
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
     from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
@@ -236,6 +243,8 @@ def collect_expert_dataset(
         "expert_version": None if make_policy_fn is not None else EXPERT_VERSION,
         "render_version": RENDER_VERSION if from_pixels and make_env_fn is None else None,
     }
+    if aim_error:  # only then: the config of every other dataset (and of a collection to resume) stays as it was
+        config["aim_error"] = float(aim_error)
     tmp = partial_path(path)
     tmp.mkdir(parents=True, exist_ok=True)
     lock = _CollectionLock(tmp, path)
@@ -245,13 +254,15 @@ def collect_expert_dataset(
         return _collect_into(
             path, tmp, config, task=task, num_episodes=num_episodes, num_workers=num_workers, image_size=image_size,
             from_pixels=from_pixels, noise=noise, seed=seed, split=split, horizon=horizon, progress=progress,
-            callback=callback, make_env_fn=make_env_fn, make_policy_fn=make_policy_fn, mp_start_method=mp_start_method)
+            callback=callback, make_env_fn=make_env_fn, make_policy_fn=make_policy_fn, mp_start_method=mp_start_method,
+            aim_error=aim_error)
     finally:
         lock.release()
 
 
 def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, num_workers, image_size, from_pixels,
-                  noise, seed, split, horizon, progress, callback, make_env_fn, make_policy_fn, mp_start_method) -> Path:
+                  noise, seed, split, horizon, progress, callback, make_env_fn, make_policy_fn, mp_start_method,
+                  aim_error) -> Path:
     """The body of :func:`collect_expert_dataset`, run while it holds the lock on ``tmp``."""
     from torchrl.collectors import Collector
 
@@ -280,7 +291,7 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
     W = int(num_workers)
     num_chunks = -(-num_episodes // W)
     env_fn = make_env_fn or functools.partial(_default_env_fn, task, from_pixels, image_size, split, horizon)
-    policy_fn = make_policy_fn or functools.partial(_default_policy_fn, task, noise)
+    policy_fn = make_policy_fn or functools.partial(_default_policy_fn, task, noise, aim_error)
     keys = [k for k, _ in STEP_KEYS if k != "pixels" or from_pixels]
 
     from tqdm.auto import tqdm

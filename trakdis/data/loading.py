@@ -44,6 +44,10 @@ class DataConfig:
     """std of the Gaussian noise on the collecting expert's picker movements: diverse, sub-optimal data
     that online fine-tuning can improve on (measured on ClothFold, 40 train episodes: 0.1 -> 0.838,
     0.15 -> 0.762 normalized performance; noise-free expert 0.826 on the eval split)"""
+    aim_error: float = 0.0
+    """std (metres) of a horizontal misplacement of each source corner in the state the collecting expert
+    reads, drawn per episode and held (ExpertPolicy's aim_error: grasps that miss, as a student's biased
+    estimate makes them; 0: none). Part of the default path when > 0 (_aim<sigma>)"""
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together while collecting, one worker process each when > 1 (default: the
     available cores, at most 2; also the chunk size, so a dataset's episodes depend on it)"""
@@ -55,7 +59,8 @@ class DataConfig:
 def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bool, image_size: int = 32) -> Path:
     if cfg.path:
         return Path(cfg.path)
-    name = f"{task}_{cfg.episodes}ep_h{horizon}_noise{cfg.expert_noise:g}" + (f"_px{image_size}" if pixels else "")
+    name = (f"{task}_{cfg.episodes}ep_h{horizon}_noise{cfg.expert_noise:g}" + (f"_aim{cfg.aim_error:g}" if cfg.aim_error else "")
+            + (f"_px{image_size}" if pixels else ""))
     return Path(cfg.root) / name
 
 
@@ -96,10 +101,11 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
     if path.exists():
         raise FileExistsError(f"{path} exists but holds no dataset (no meta.json); remove it or pass another path")
     verb = "resuming the collection of" if partial_path(path).exists() else "collecting"
-    log(f"{verb} {cfg.episodes} expert episodes of {task} into {path} (movement noise {cfg.expert_noise:g}, "
+    aim = f", source corners misplaced by {cfg.aim_error:g} m" if cfg.aim_error else ""
+    log(f"{verb} {cfg.episodes} expert episodes of {task} into {path} (movement noise {cfg.expert_noise:g}{aim}, "
         f"{'with' if pixels else 'without'} pixels)")
     collect_expert_dataset(path, task=task, num_episodes=cfg.episodes, num_workers=cfg.num_envs,
-                           image_size=image_size, from_pixels=pixels, noise=cfg.expert_noise, seed=seed,
+                           image_size=image_size, from_pixels=pixels, noise=cfg.expert_noise, aim_error=cfg.aim_error, seed=seed,
                            horizon=horizon, progress=progress)
     return path
 
@@ -204,7 +210,8 @@ class TrainValSteps(NamedTuple):
 
 def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int, keys: Sequence[str],
                          val_fraction: float, image_size: int = 32, extra_noise: Sequence[float] = (),
-                         log: Callable[..., None] = print, progress: bool = True) -> TrainValSteps:
+                         extra_aim_error: Sequence[float] = (), log: Callable[..., None] = print,
+                         progress: bool = True) -> TrainValSteps:
     """The real steps (entries ``keys``) of the dataset with images of ``cfg`` (:func:`ensure_dataset`:
     collected first if missing), split by episode into training and validation steps
     (:func:`~trakdis.data.split_episodes_train_val` with ``val_fraction`` and ``seed``).
@@ -212,14 +219,17 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     ``extra_noise``: the training steps also hold all the steps of the datasets of ``cfg``'s size
     collected with these expert movement noises (default paths, seed ``seed + 1``; each found or
     collected before the split), each announced as ``"training images +<n> from <path>"``; the
-    validation steps stay the main dataset's."""
+    validation steps stay the main dataset's. ``extra_aim_error``: the same with datasets whose expert
+    aims at source corners misplaced by these stds (:attr:`DataConfig.aim_error`; ``cfg``'s movement
+    noise, seed ``seed + 2``)."""
     path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, image_size=image_size, log=log,
                           progress=progress)
     data, lengths = load_trajectories(path, keys=keys, action_labels=cfg.action_labels)
     extra = []
-    for noise in extra_noise:
-        extra_cfg = dataclasses.replace(cfg, path=None, expert_noise=float(noise))
-        extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=seed + 1, pixels=True,
+    extra_cfgs = [(dataclasses.replace(cfg, path=None, expert_noise=float(noise)), seed + 1) for noise in extra_noise]
+    extra_cfgs += [(dataclasses.replace(cfg, path=None, aim_error=float(aim)), seed + 2) for aim in extra_aim_error]
+    for extra_cfg, extra_seed in extra_cfgs:
+        extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=extra_seed, pixels=True,
                                     image_size=image_size, log=log, progress=progress)
         extra.append((extra_path, *load_trajectories(extra_path, keys=keys, action_labels=cfg.action_labels)))
     train_episodes, val_episodes = split_episodes_train_val(data.shape[0], val_fraction, seed=seed)

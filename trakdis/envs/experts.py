@@ -190,24 +190,58 @@ class ExpertPolicy(TensorDictModuleBase):
     ``seed``. The grasp command stays exactly +-1: the env thresholds it at 0, so noise on it
     changes no behaviour, but it turned a binary target into a spread of values near +-1 whose
     tanh-Gaussian fit had a pre-tanh std of ~3 (a sampled action then released the cloth).
+
+    ``aim_error`` (metres, default 0: off) misleads the expert: each source corner it reads is moved
+    horizontally by a Gaussian offset of that std per axis, drawn when an episode starts (a step with
+    ``step_count`` 0; every call without ``"step_count"``) and held for the episode. The expert then
+    aims at the wrong spot, closes there, takes another vertex or nothing, and carries on as if it held
+    its corner: the failed grasps of a student whose state estimate is biased, in images labelled with
+    the true state (``train_encoder.py --extra-aim-error``). The env, the state and the labels are
+    untouched; only what the expert aims at moves.
     """
 
-    def __init__(self, task: str, noise: float = 0.0, seed: int | None = None, **expert_kwargs):
+    def __init__(self, task: str, noise: float = 0.0, seed: int | None = None, aim_error: float = 0.0,
+                 **expert_kwargs):
         super().__init__()
         self.task = check_task(task)
         if noise < 0:
             raise ValueError(f"noise must be >= 0, got {noise}")
+        if not aim_error >= 0:  # also NaN
+            raise ValueError(f"aim_error must be >= 0 (metres), got {aim_error}")
         self.noise = float(noise)
+        self.aim_error = float(aim_error)
         self.expert_kwargs = expert_kwargs
         self.in_keys = ["state", "step_count"]
         self.out_keys = ["action"]
         self._rng = np.random.default_rng(seed)
+        self._aim = None  # [*batch, num_pickers, 2]: this episode's misplacement of each source corner
+
+    def _misplaced(self, state: np.ndarray, step) -> np.ndarray:
+        """``state`` with each source corner moved by its episode's offset (drawn anew where an episode starts)."""
+        plan = FOLD_PLAN[self.task]
+        batch = state.shape[:-1]
+        step = np.asarray(step)
+        if step.ndim == len(batch) + 1:  # the env's step_count is [*batch, 1]
+            step = step[..., 0]
+        start = np.broadcast_to(step == 0, batch)
+        shape = (*batch, len(plan), 2)
+        if self._aim is None or self._aim.shape != shape:
+            self._aim = self._rng.normal(0.0, self.aim_error, shape)
+        elif start.any():
+            self._aim[start] = self._rng.normal(0.0, self.aim_error, shape)[start]
+        state = state.copy()
+        for p, (source, _) in enumerate(plan):
+            state[..., 3 * source:3 * source + 2] += self._aim[..., p, :]
+        return state
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         state = tensordict.get("state")
         step = tensordict.get("step_count", None)
         step_np = 0 if step is None else step.detach().cpu().numpy()
-        action = expert_action(self.task, state.detach().cpu().numpy(), step_np, **self.expert_kwargs)
+        state_np = state.detach().cpu().numpy()
+        if self.aim_error > 0:
+            state_np = self._misplaced(state_np, step_np)
+        action = expert_action(self.task, state_np, step_np, **self.expert_kwargs)
         if self.noise > 0:
             add_movement_noise(action, self.noise, self._rng)
         tensordict.set("action", torch.as_tensor(action, dtype=torch.float32, device=state.device))
