@@ -107,19 +107,28 @@ def same(x, y) -> bool:
     return torch.equal(x, y) if torch.is_tensor(x) else x == y
 
 
+def tiny_teacher_and_encoder(tmp_path, *, horizon: int, encoder_scale: float = 1.0):
+    """A tiny untrained ClothFold teacher saved under ``tmp_path`` (loaded) and a tiny encoder."""
+    from trakdis.envs import task_spec
+
+    spec = task_spec("ClothFold")
+    cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(spec.state_dim,
+                                                                                          spec.action_dim, horizon=horizon)
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFold", horizon=horizon, dt_config=cfg,
+                actor=make_dt_actor(cfg, observation_key="state"), observation_key="state", target_return=-1.0,
+                rtg_scale=1.0)
+    encoder = NormalizedEncoder(StateEncoder(spec.state_dim, channels=(4, 4, 4, 4), hidden_dim=8),
+                                torch.zeros(spec.state_dim), torch.full((spec.state_dim,), encoder_scale))
+    return load_teacher(tmp_path), encoder
+
+
 def test_student_rollout_steps(tmp_path):
     from trakdis.envs import task_spec
     from trakdis.policies import student_rollout_steps
 
     spec = task_spec("ClothFold")
-    cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(spec.state_dim,
-                                                                                          spec.action_dim, horizon=2)
-    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFold", horizon=2, dt_config=cfg,
-                actor=make_dt_actor(cfg, observation_key="state"), observation_key="state", target_return=-1.0,
-                rtg_scale=1.0)
-    encoder = NormalizedEncoder(StateEncoder(spec.state_dim, channels=(4, 4, 4, 4), hidden_dim=8),
-                                torch.zeros(spec.state_dim), torch.ones(spec.state_dim))
-    steps, metrics = student_rollout_steps(load_teacher(tmp_path), encoder, episodes=2, seed=0)
+    teacher, encoder = tiny_teacher_and_encoder(tmp_path, horizon=2)
+    steps, metrics = student_rollout_steps(teacher, encoder, episodes=2, seed=0)
     assert set(steps.keys()) == {"pixels", "state"} and steps.batch_size == (4,)  # 2 episodes x 2 steps
     assert steps["pixels"].shape[1:] == (32, 32, 3) and steps["state"].shape[1:] == (spec.state_dim,)
     assert set(metrics) == {"normalized_performance", "corners_cm", "pickers_cm", "mae"}
@@ -127,24 +136,15 @@ def test_student_rollout_steps(tmp_path):
     from trakdis.transforms import OutOfViewFill
 
     fill = OutOfViewFill.for_task("ClothFold")  # the labels of train_encoder.py --mask-unseen-pickers
-    masked, _ = student_rollout_steps(load_teacher(tmp_path), encoder, episodes=2, seed=0, label_fill=fill)
+    masked, _ = student_rollout_steps(teacher, encoder, episodes=2, seed=0, label_fill=fill)
     assert torch.equal(masked["pixels"], steps["pixels"]) and torch.equal(masked["state"], fill.mask(steps["state"]))
 
 
 def test_weight_copy_episodes_in_worker_processes_are_the_serial_ones(tmp_path):
     """``parallel=True`` (``train_encoder.py --parallel``): the same episodes, stepped in 2 worker processes."""
-    from trakdis.envs import task_spec
     from trakdis.policies import student_rollout_steps, weight_copy_scores
 
-    spec = task_spec("ClothFold")
-    cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(spec.state_dim,
-                                                                                          spec.action_dim, horizon=3)
-    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFold", horizon=3, dt_config=cfg,
-                actor=make_dt_actor(cfg, observation_key="state"), observation_key="state", target_return=-1.0,
-                rtg_scale=1.0)
-    encoder = NormalizedEncoder(StateEncoder(spec.state_dim, channels=(4, 4, 4, 4), hidden_dim=8),
-                                torch.zeros(spec.state_dim), torch.full((spec.state_dim,), 0.1))
-    teacher = load_teacher(tmp_path)
+    teacher, encoder = tiny_teacher_and_encoder(tmp_path, horizon=3, encoder_scale=0.1)
     serial, metrics = student_rollout_steps(teacher, encoder, episodes=2, seed=3)
     parallel, metrics_parallel = student_rollout_steps(teacher, encoder, episodes=2, seed=3, parallel=True)
     assert torch.equal(serial["pixels"], parallel["pixels"]) and torch.equal(serial["state"], parallel["state"])

@@ -47,7 +47,8 @@ class DataConfig:
     aim_error: float = 0.0
     """std (metres) of a horizontal misplacement of each source corner in the state the collecting expert
     reads, drawn per episode and held (ExpertPolicy's aim_error: grasps that miss, as a student's biased
-    estimate makes them; 0: none). Part of the default path when > 0 (_aim<sigma>)"""
+    estimate makes them; 0: none). Part of the default path when > 0 (_aim<sigma>). Its recorded actions are
+    the misled expert's; --data.action-labels expert recomputes those of the expert that sees the true state"""
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together while collecting, one worker process each when > 1 (default: the
     available cores, at most 2; also the chunk size, so a dataset's episodes depend on it)"""
