@@ -142,13 +142,15 @@ def test_student_rollout_steps(tmp_path):
 
 def test_weight_copy_episodes_in_worker_processes_are_the_serial_ones(tmp_path):
     """``parallel=True`` (``train_encoder.py --parallel``): the same episodes, stepped in 2 worker processes."""
-    from trakdis.policies import student_rollout_steps
+    from trakdis.policies import student_rollout_steps, weight_copy_scores
 
     teacher, encoder = tiny_teacher_and_encoder(tmp_path, horizon=3, encoder_scale=0.1)
     serial, metrics = student_rollout_steps(teacher, encoder, episodes=2, seed=3)
     parallel, metrics_parallel = student_rollout_steps(teacher, encoder, episodes=2, seed=3, parallel=True)
     assert torch.equal(serial["pixels"], parallel["pixels"]) and torch.equal(serial["state"], parallel["state"])
-    assert metrics == metrics_parallel  # weight_copy_scores plays its episodes through the same helper
+    assert metrics == metrics_parallel
+    scores = weight_copy_scores(teacher, encoder, episodes=2, seed=3, parallel=True)  # the same episodes' scores
+    assert scores.shape == (2,) and scores.mean() == pytest.approx(metrics["normalized_performance"], rel=1e-12)
 
 
 def test_load_teacher_and_encoder_finds_the_latest_runs_and_checks_the_mask(tmp_path):

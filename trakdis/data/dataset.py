@@ -220,10 +220,11 @@ def collect_expert_dataset(
             f"collect_expert_dataset: num_episodes ({num_episodes}), num_workers ({num_workers}) and horizon "
             f"({horizon}) must be >= 1"
         )
-    if not aim_error >= 0:
-        raise ValueError(f"collect_expert_dataset: aim_error must be >= 0 (metres), got {aim_error}")
     if aim_error and make_policy_fn is not None:
         raise ValueError("collect_expert_dataset: aim_error applies to the scripted expert, not to make_policy_fn")
+    policy_fn = make_policy_fn or functools.partial(_default_policy_fn, task, noise, aim_error)
+    if make_policy_fn is None:
+        policy_fn(None)  # the expert's own checks (noise, aim_error) reject bad values before anything is on disk
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
     from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
@@ -253,16 +254,14 @@ def collect_expert_dataset(
             raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
         return _collect_into(
             path, tmp, config, task=task, num_episodes=num_episodes, num_workers=num_workers, image_size=image_size,
-            from_pixels=from_pixels, noise=noise, seed=seed, split=split, horizon=horizon, progress=progress,
-            callback=callback, make_env_fn=make_env_fn, make_policy_fn=make_policy_fn, mp_start_method=mp_start_method,
-            aim_error=aim_error)
+            from_pixels=from_pixels, seed=seed, split=split, horizon=horizon, progress=progress,
+            callback=callback, make_env_fn=make_env_fn, policy_fn=policy_fn, mp_start_method=mp_start_method)
     finally:
         lock.release()
 
 
 def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, num_workers, image_size, from_pixels,
-                  noise, seed, split, horizon, progress, callback, make_env_fn, make_policy_fn, mp_start_method,
-                  aim_error) -> Path:
+                  seed, split, horizon, progress, callback, make_env_fn, policy_fn, mp_start_method) -> Path:
     """The body of :func:`collect_expert_dataset`, run while it holds the lock on ``tmp``."""
     from torchrl.collectors import Collector
 
@@ -291,7 +290,6 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
     W = int(num_workers)
     num_chunks = -(-num_episodes // W)
     env_fn = make_env_fn or functools.partial(_default_env_fn, task, from_pixels, image_size, split, horizon)
-    policy_fn = make_policy_fn or functools.partial(_default_policy_fn, task, noise, aim_error)
     keys = [k for k, _ in STEP_KEYS if k != "pixels" or from_pixels]
 
     from tqdm.auto import tqdm
