@@ -173,6 +173,22 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_datasets(tmp_
     assert train.shape[0] == sum(lengths[i] for i in train_eps) + 5 + 2  # + all the extra datasets' 3 + 2 and 2 steps
     assert lines == [f"training images +5 from {extra}", f"training images +2 from {aimed}"]
     assert load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.0).val is None
+    # --extra-data: existing datasets by path, never collected; the main one refused (its images would count twice)
+    given = tmp_path / "more"
+    given.mkdir()
+    (given / "meta.json").write_text("{}")
+    datasets[given] = (_episodes(2, 3), torch.tensor([1, 3]))
+    lines.clear()
+    more = load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.4,
+                                extra_data=(str(given),), log=lines.append)
+    assert more.train.shape[0] == train.shape[0] - 5 - 2 + 4 and lines == [f"training images +4 from {given}"]
+    for bad, message in ((tmp_path / "none", "no dataset there"), (main, "is the main dataset")):
+        (main / "meta.json").parent.mkdir(parents=True, exist_ok=True)
+        (main / "meta.json").write_text("{}")
+        with pytest.raises(DatasetError, match=message) as err:
+            load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.4,
+                                 extra_data=(str(bad),))
+        assert str(bad) in str(err.value)
 
 
 def test_load_encoded_dataset_puts_the_encoders_output_beside_the_kept_entries(tmp_path, monkeypatch):

@@ -114,7 +114,8 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
                                           "--no-eval-teacher"]),
             "--bc-args=" + " ".join([*h, *data, *trunk, "--epochs", "1", "--batch-size", "8", "--hidden-dims", "8"]),
             "--dt-image-args=" + " ".join([*h, *data, *trunk, *dt, "--updates", "1", "--log-every", "1"]),
-            "--noise-levels", "0", "0.001", "--noise-trials", "1", "--no-parallel"]  # workers: see the test below
+            "--noise-levels", "0", "0.001", "--noise-trials", "1", "--no-parallel",  # workers: see the test below
+            "--no-overlap"]  # evaluations in this process: ten background ones cost ~70 s of imports (tests/utils/test_stages.py)
     try:
         bench = load_benchmark()
         frame = bench.main(args)

@@ -211,8 +211,8 @@ class TrainValSteps(NamedTuple):
 
 def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int, keys: Sequence[str],
                          val_fraction: float, image_size: int = 32, extra_noise: Sequence[float] = (),
-                         extra_aim_error: Sequence[float] = (), log: Callable[..., None] = print,
-                         progress: bool = True) -> TrainValSteps:
+                         extra_aim_error: Sequence[float] = (), extra_data: Sequence[str | Path] = (),
+                         log: Callable[..., None] = print, progress: bool = True) -> TrainValSteps:
     """The real steps (entries ``keys``) of the dataset with images of ``cfg`` (:func:`ensure_dataset`:
     collected first if missing), split by episode into training and validation steps
     (:func:`~trakdis.data.split_episodes_train_val` with ``val_fraction`` and ``seed``).
@@ -222,13 +222,20 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     collected before the split), each announced as ``"training images +<n> from <path>"``; the
     validation steps stay the main dataset's. ``extra_aim_error``: the same with datasets whose expert
     aims at source corners misplaced by these stds (:attr:`DataConfig.aim_error`; ``cfg``'s movement
-    noise, seed ``seed + 2``)."""
+    noise, seed ``seed + 2``). ``extra_data``: the steps of these existing datasets too (each of ``task`` and
+    ``horizon``, with images, and not the main dataset; else a :class:`~trakdis.data.DatasetError` naming it)."""
     path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, image_size=image_size, log=log,
                           progress=progress)
     data, lengths = load_trajectories(path, keys=keys, action_labels=cfg.action_labels)
     extra = []
     extra_cfgs = [(dataclasses.replace(cfg, path=None, expert_noise=float(noise)), seed + 1) for noise in extra_noise]
     extra_cfgs += [(dataclasses.replace(cfg, path=None, aim_error=float(aim)), seed + 2) for aim in extra_aim_error]
+    for extra_path in map(Path, extra_data):  # never collected: a path given by hand must hold a dataset
+        if not (extra_path / "meta.json").exists():
+            raise DatasetError(f"extra dataset {extra_path}: no dataset there (no meta.json)")
+        if extra_path.resolve() == Path(path).resolve():
+            raise DatasetError(f"extra dataset {extra_path} is the main dataset: its images would count twice")
+        extra_cfgs.append((dataclasses.replace(cfg, path=str(extra_path)), seed))
     for extra_cfg, extra_seed in extra_cfgs:
         extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=extra_seed, pixels=True,
                                     image_size=image_size, log=log, progress=progress)
