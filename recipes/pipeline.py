@@ -9,8 +9,8 @@
 2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
    and those the weight-copied student visits (``--teacher``, rounds of its rollouts); three trained
    side by side, the one the weight copy folds best with kept (``--members 3 --select-episodes 30``).
-3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data,
-   the snapshot kept by its train-split selection episodes).
+3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data; on the
+   diagonal folds the snapshot kept by its train-split selection episodes, on ClothFold the last round's).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
    25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a

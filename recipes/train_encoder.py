@@ -62,6 +62,9 @@ class TrainEncoderConfig(RunConfig):
     extra_aim_error: tuple[float, ...] = ()
     """also train on datasets of the same size whose expert aims at source corners misplaced by these stds (m):
     images of missed grasps, labelled with the true state (the main dataset's movement noise)"""
+    extra_seeds: tuple[int, ...] = ()
+    """also train on datasets like the main one (its size and movement noise) collected with these seeds (default
+    paths ..._seed<k>...; collected if missing): more episodes of the same expert"""
     extra_data: tuple[str, ...] = ()
     """also train on these existing datasets of the task (directories with images), e.g. more expert episodes"""
     val_fraction: float = 0.1  # fraction of the episodes held out for validation
@@ -96,11 +99,12 @@ def main(argv=None) -> dict:
             cfg.teacher and cfg.student_rounds > 0 and min(cfg.student_episodes, cfg.student_epochs) < 1:
         raise ValueError(f"--student-rounds {cfg.student_rounds} >= 0 needs --student-episodes "
                          f"({cfg.student_episodes}) and --student-epochs ({cfg.student_epochs}) >= 1")
-    # the expert images and states, split by episode; --extra-noise/-aim-error/-data datasets join the training steps
+    # the expert images and states, split by episode; --extra-* datasets join the training steps
     path, train, val, train_episodes, val_episodes = load_train_val_steps(
         cfg.data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, keys=("pixels", "state"),
         val_fraction=cfg.val_fraction, image_size=cfg.image_size, extra_noise=cfg.extra_noise,
-        extra_aim_error=cfg.extra_aim_error, extra_data=cfg.extra_data, log=run.print,
+        extra_aim_error=cfg.extra_aim_error, extra_seeds=cfg.extra_seeds,
+        extra_data=cfg.extra_data, log=run.print,
         progress=cfg.progress)
     # --mask-unseen-pickers: the labels (training and validation) are what the teacher reads, a picker
     # out of the image replaced by the sentinel the encoder then learns to output for it

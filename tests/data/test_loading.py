@@ -160,6 +160,9 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_datasets(tmp_
     monkeypatch.setattr(loading, "ensure_dataset", ensure_dataset)
     monkeypatch.setattr(loading, "load_expert_dataset",
                         lambda path: (datasets[path][0], {"lengths": datasets[path][1]}))
+    collected = {main: (7, 0.15), extra: (8, 0.3), aimed: (9, 0.15)}  # the seed and noise each was collected with
+    monkeypatch.setattr(loading, "read_meta", lambda p: {"config": {"seed": collected[p][0], "noise": collected[p][1],
+                                                                    "custom_policy": False}})
     lines = []
     path, train, val, train_eps, val_eps = load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7,
                                                                 keys=("pixels", "state"), val_fraction=0.4,
@@ -173,22 +176,30 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_datasets(tmp_
     assert train.shape[0] == sum(lengths[i] for i in train_eps) + 5 + 2  # + all the extra datasets' 3 + 2 and 2 steps
     assert lines == [f"training images +5 from {extra}", f"training images +2 from {aimed}"]
     assert load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.0).val is None
-    # --extra-data: existing datasets by path, never collected; the main one refused (its images would count twice)
+    # --extra-seeds: the same expert's datasets of other seeds (own default paths); --extra-data: existing ones by path,
+    # never collected. The main dataset, or one collected exactly as it was, is refused (the same episodes twice).
     given = tmp_path / "more"
     given.mkdir()
     (given / "meta.json").write_text("{}")
-    datasets[given] = (_episodes(2, 3), torch.tensor([1, 3]))
-    lines.clear()
+    reseeded = default_dataset_path(DataConfig(root=str(tmp_path), episodes=5, seed=3), task="ClothFold", horizon=3,
+                                    pixels=True)
+    assert reseeded.name.endswith("_noise0.15_seed3_px32")
+    datasets[given], datasets[reseeded] = (_episodes(2, 3), torch.tensor([1, 3])), (_episodes(1, 3), torch.tensor([2]))
+    collected.update({reseeded: (3, 0.15), given: (5, 0.15)})
+    lines.clear(), seeds.clear()
     more = load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.4,
-                                extra_data=(str(given),), log=lines.append)
-    assert more.train.shape[0] == train.shape[0] - 5 - 2 + 4 and lines == [f"training images +4 from {given}"]
-    for bad, message in ((tmp_path / "none", "no dataset there"), (main, "is the main dataset")):
-        (main / "meta.json").parent.mkdir(parents=True, exist_ok=True)
-        (main / "meta.json").write_text("{}")
-        with pytest.raises(DatasetError, match=message) as err:
-            load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.4,
-                                 extra_data=(str(bad),))
-        assert str(bad) in str(err.value)
+                                extra_seeds=(3,), extra_data=(str(given),), log=lines.append)
+    assert seeds[reseeded] == 3 and more.train.shape[0] == train.shape[0] - 5 - 2 + 2 + 4
+    assert lines == [f"training images +2 from {reseeded}", f"training images +4 from {given}"]
+    main.mkdir(parents=True)
+    (main / "meta.json").write_text("{}")
+    for bad, message in (({"extra_data": (str(tmp_path / "none"),)}, "no dataset there"),
+                         ({"extra_data": (str(main),)}, "is the main dataset"),
+                         ({"extra_seeds": (0,)}, "collected as the main dataset")):
+        if "extra_seeds" in bad:  # seed 0's dataset, found collected exactly as the main one was
+            collected[main.parent / main.name.replace("_px32", "_seed0_px32")] = (7, 0.15)
+        with pytest.raises(DatasetError, match=message):
+            load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.4, **bad)
 
 
 def test_load_encoded_dataset_puts_the_encoders_output_beside_the_kept_entries(tmp_path, monkeypatch):

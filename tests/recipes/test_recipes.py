@@ -193,6 +193,7 @@ def test_distill_files_and_resume(workdir, student):
     assert frame["selection/normalized_performance"].notna().sum() == 3
     saved = load_checkpoint(student / "policy.pt")
     assert list(saved["selection_scores"]) == [0, 1, 2] and saved["selected_round"] in (0, 1, 2)
+    assert saved["select_episodes"] == 2  # given: the task's default (SELECT_EPISODES) does not apply
     handle = load_policy(student)
     assert handle.kind == "student" and handle.observation_key == "state_estimate" and handle.encoder is not None
     assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7)  # the teacher's architecture
@@ -229,13 +230,17 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     assert rounds["rollout/student_normalized_performance"].notna().tolist() == [False, True]
     # the expert dataset alone, with the teacher's labels; the pickers fused with the commands
     out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
-                                                        "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", *DATA))
+                                                        "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", *DATA,
+                                                        "--select-episodes", "None"))  # the task's default
     assert "--expert-data" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "offline")
     assert frame["train/loss_distill"].notna().sum() == 2 and not any(c.startswith("rollout/") for c in frame.columns)
     assert frame["eval/normalized_performance"].notna().sum() == 2  # acted with PickerOdometry in its env
     handle = load_policy(workdir / "runs" / "distill" / "offline")
-    assert handle.picker_odometry and load_checkpoint(workdir / "runs" / "distill" / "offline" / "policy.pt")["picker_odometry"]
+    saved = load_checkpoint(workdir / "runs" / "distill" / "offline" / "policy.pt")
+    assert handle.picker_odometry and saved["picker_odometry"]
+    # ClothFold's default: no selection episodes, the last round's student kept
+    assert saved["select_episodes"] == 0 and saved["selected_round"] is None and "selection/" not in " ".join(frame.columns)
     env = handle.make_env()  # not started: nothing to close
     assert any(type(t).__name__ == "PickerOdometry" for t in env.transform)
     # --episodes-per-round 0 --no-expert-data: refused while parsing (test_bad_options_are_refused_...)

@@ -52,6 +52,9 @@ class DataConfig:
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together while collecting, one worker process each when > 1 (default: the
     available cores, at most 2; also the chunk size, so a dataset's episodes depend on it)"""
+    seed: Optional[int] = None
+    """seed of the collection when the dataset is missing (default: the run's --seed). When set, part of the default
+    path (_seed<k>), so that the same expert's datasets of other seeds live beside it: more episodes, never the same"""
     action_labels: ActionLabels = "executed"
     """the actions a policy learns: the recorded, noisy ones (executed), or the scripted expert's
     noise-free action at each recorded step (expert: DART's clean labels; trakdis.data.labels)"""
@@ -61,7 +64,7 @@ def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bo
     if cfg.path:
         return Path(cfg.path)
     name = (f"{task}_{cfg.episodes}ep_h{horizon}_noise{cfg.expert_noise:g}" + (f"_aim{cfg.aim_error:g}" if cfg.aim_error else "")
-            + (f"_px{image_size}" if pixels else ""))
+            + (f"_seed{cfg.seed}" if cfg.seed is not None else "") + (f"_px{image_size}" if pixels else ""))
     return Path(cfg.root) / name
 
 
@@ -75,6 +78,7 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 
     if horizon < 1:
         raise ValueError(f"--horizon {horizon}: the episode length must be >= 1")
+    seed = seed if cfg.seed is None else cfg.seed
     path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels, image_size=image_size)
     if (path / "meta.json").exists():
         meta = read_meta(path)
@@ -211,7 +215,8 @@ class TrainValSteps(NamedTuple):
 
 def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int, keys: Sequence[str],
                          val_fraction: float, image_size: int = 32, extra_noise: Sequence[float] = (),
-                         extra_aim_error: Sequence[float] = (), extra_data: Sequence[str | Path] = (),
+                         extra_aim_error: Sequence[float] = (), extra_seeds: Sequence[int] = (),
+                         extra_data: Sequence[str | Path] = (),
                          log: Callable[..., None] = print, progress: bool = True) -> TrainValSteps:
     """The real steps (entries ``keys``) of the dataset with images of ``cfg`` (:func:`ensure_dataset`:
     collected first if missing), split by episode into training and validation steps
@@ -222,23 +227,25 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     collected before the split), each announced as ``"training images +<n> from <path>"``; the
     validation steps stay the main dataset's. ``extra_aim_error``: the same with datasets whose expert
     aims at source corners misplaced by these stds (:attr:`DataConfig.aim_error`; ``cfg``'s movement
-    noise, seed ``seed + 2``). ``extra_data``: the steps of these existing datasets too (each of ``task`` and
+    noise, seed ``seed + 2``). ``extra_seeds``: datasets like ``cfg``'s (its size and movement noise) collected with
+    these seeds (:attr:`DataConfig.seed`: their own default paths), more episodes of the same expert. ``extra_data``: the steps of these existing datasets too (each of ``task`` and
     ``horizon``, with images, and not the main dataset; else a :class:`~trakdis.data.DatasetError` naming it)."""
     path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, image_size=image_size, log=log,
                           progress=progress)
     data, lengths = load_trajectories(path, keys=keys, action_labels=cfg.action_labels)
     extra = []
-    extra_cfgs = [(dataclasses.replace(cfg, path=None, expert_noise=float(noise)), seed + 1) for noise in extra_noise]
-    extra_cfgs += [(dataclasses.replace(cfg, path=None, aim_error=float(aim)), seed + 2) for aim in extra_aim_error]
+    # the noisier and the misled experts' datasets: seeds relative to the run's (not --data.seed's)
+    extra_cfgs = [(dataclasses.replace(cfg, path=None, seed=None, expert_noise=float(noise)), seed + 1) for noise in extra_noise]
+    extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=None, aim_error=float(aim)), seed + 2) for aim in extra_aim_error]
+    extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=int(k)), int(k)) for k in extra_seeds]
     for extra_path in map(Path, extra_data):  # never collected: a path given by hand must hold a dataset
         if not (extra_path / "meta.json").exists():
             raise DatasetError(f"extra dataset {extra_path}: no dataset there (no meta.json)")
-        if extra_path.resolve() == Path(path).resolve():
-            raise DatasetError(f"extra dataset {extra_path} is the main dataset: its images would count twice")
         extra_cfgs.append((dataclasses.replace(cfg, path=str(extra_path)), seed))
     for extra_cfg, extra_seed in extra_cfgs:
         extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=extra_seed, pixels=True,
                                     image_size=image_size, log=log, progress=progress)
+        _check_not_the_same_episodes(path, extra_path)
         extra.append((extra_path, *load_trajectories(extra_path, keys=keys, action_labels=cfg.action_labels)))
     train_episodes, val_episodes = split_episodes_train_val(data.shape[0], val_fraction, seed=seed)
     train = real_steps(data, lengths, train_episodes)
@@ -248,6 +255,18 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
         train = torch.cat([train, extra_steps])
         log(f"training images +{extra_steps.shape[0]} from {extra_path}")
     return TrainValSteps(path, train, val, train_episodes, val_episodes)
+
+
+def _check_not_the_same_episodes(main: Path, extra: Path) -> None:
+    """A :class:`~trakdis.data.DatasetError` if the extra dataset ``extra`` is the main one, or was collected by the
+    scripted expert exactly as it was (same seed, noise, misled aim and chunks: the same episodes, counted twice)."""
+    if Path(extra).resolve() == Path(main).resolve():
+        raise DatasetError(f"extra dataset {extra} is the main dataset: its images would count twice")
+    keys = ("task", "seed", "noise", "aim_error", "chunk_size", "split", "horizon", "custom_env", "custom_policy")
+    a, b = (read_meta(p).get("config", {}) for p in (main, extra))
+    if not a.get("custom_policy", True) and all(a.get(k) == b.get(k) for k in keys):
+        raise DatasetError(f"extra dataset {extra} was collected as the main dataset {main} was (seed {b.get('seed')}, "
+                           f"noise {b.get('noise')}): the same episodes would count twice; use another seed")
 
 
 def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float, keys: Sequence[str],
