@@ -24,6 +24,19 @@ def test_default_name():
     assert default_dataset_path(aimed, task="ClothFold", horizon=50, pixels=True).as_posix() == "d/ClothFold_7ep_h50_noise0.1_aim0.03_px32"
 
 
+def test_data_seed_names_the_dataset_and_seeds_its_collection(tmp_path, monkeypatch):
+    from trakdis.data import loading
+
+    calls = []
+    monkeypatch.setattr(loading, "collect_expert_dataset", lambda path, **kw: calls.append((path, kw["seed"])))
+    path = ensure_dataset(DataConfig(root=str(tmp_path), episodes=2, seed=5), task="ClothFold", horizon=4, seed=0,
+                          pixels=False, log=lambda *a: None)
+    assert path.name == "ClothFold_2ep_h4_noise0.15_seed5" and calls == [(path, 5)]  # --data.seed wins over the run's
+    ensure_dataset(DataConfig(root=str(tmp_path), episodes=2), task="ClothFold", horizon=4, seed=3, pixels=False,
+                   log=lambda *a: None)
+    assert calls[-1] == (tmp_path / "ClothFold_2ep_h4_noise0.15", 3)  # unset: the run's seed, the path as before
+
+
 @pytest.mark.parametrize("found", [None, EXPERT_VERSION - 1])
 def test_default_dataset_of_an_older_expert_is_refused(tmp_path, found):
     cfg = DataConfig(root=str(tmp_path), episodes=3)
