@@ -199,7 +199,8 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_datasets(tmp_
     assert reseeded.name.endswith("_noise0.15_seed3_px32")
     datasets[given], datasets[reseeded] = (_episodes(2, 3), torch.tensor([1, 3])), (_episodes(1, 3), torch.tensor([2]))
     collected.update({reseeded: (3, 0.15), given: (5, 0.15)})
-    lines.clear(), seeds.clear()
+    lines.clear()
+    seeds.clear()
     more = load_train_val_steps(cfg, task="ClothFold", horizon=3, seed=7, keys=("state",), val_fraction=0.4,
                                 extra_seeds=(3,), extra_data=(str(given),), log=lines.append)
     assert seeds[reseeded] == 3 and more.train.shape[0] == train.shape[0] - 5 - 2 + 2 + 4

@@ -227,12 +227,15 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     collected before the split), each announced as ``"training images +<n> from <path>"``; the
     validation steps stay the main dataset's. ``extra_aim_error``: the same with datasets whose expert
     aims at source corners misplaced by these stds (:attr:`DataConfig.aim_error`; ``cfg``'s movement
-    noise, seed ``seed + 2``). ``extra_seeds``: datasets like ``cfg``'s (its size and movement noise) collected with
-    these seeds (:attr:`DataConfig.seed`: their own default paths), more episodes of the same expert. ``extra_data``: the steps of these existing datasets too (each of ``task`` and
-    ``horizon``, with images, and not the main dataset; else a :class:`~trakdis.data.DatasetError` naming it)."""
+    noise, seed ``seed + 2``). ``extra_seeds``: datasets like ``cfg``'s (its size and movement noise) collected
+    with these seeds (:attr:`DataConfig.seed`: their own default paths), more episodes of the same expert.
+    ``extra_data``: the steps of these existing datasets too (each of ``task`` and ``horizon``, with images).
+    An extra dataset that is the main one, or was collected exactly as it was, is a
+    :class:`~trakdis.data.DatasetError` naming it (the same episodes would count twice)."""
     path = ensure_dataset(cfg, task=task, horizon=horizon, seed=seed, pixels=True, image_size=image_size, log=log,
                           progress=progress)
     data, lengths = load_trajectories(path, keys=keys, action_labels=cfg.action_labels)
+    main_config = read_meta(path).get("config", {})
     extra = []
     # the noisier and the misled experts' datasets: seeds relative to the run's (not --data.seed's)
     extra_cfgs = [(dataclasses.replace(cfg, path=None, seed=None, expert_noise=float(noise)), seed + 1) for noise in extra_noise]
@@ -245,7 +248,7 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     for extra_cfg, extra_seed in extra_cfgs:
         extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=extra_seed, pixels=True,
                                     image_size=image_size, log=log, progress=progress)
-        _check_not_the_same_episodes(path, extra_path)
+        _check_not_the_same_episodes(path, main_config, extra_path)
         extra.append((extra_path, *load_trajectories(extra_path, keys=keys, action_labels=cfg.action_labels)))
     train_episodes, val_episodes = split_episodes_train_val(data.shape[0], val_fraction, seed=seed)
     train = real_steps(data, lengths, train_episodes)
@@ -257,13 +260,14 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     return TrainValSteps(path, train, val, train_episodes, val_episodes)
 
 
-def _check_not_the_same_episodes(main: Path, extra: Path) -> None:
+def _check_not_the_same_episodes(main: Path, main_config: dict, extra: Path) -> None:
     """A :class:`~trakdis.data.DatasetError` if the extra dataset ``extra`` is the main one, or was collected by the
-    scripted expert exactly as it was (same seed, noise, misled aim and chunks: the same episodes, counted twice)."""
+    scripted expert exactly as it was (``main_config``, the main dataset's collection config: same seed, noise,
+    misled aim and chunks, so the same episodes, counted twice)."""
     if Path(extra).resolve() == Path(main).resolve():
         raise DatasetError(f"extra dataset {extra} is the main dataset: its images would count twice")
     keys = ("task", "seed", "noise", "aim_error", "chunk_size", "split", "horizon", "custom_env", "custom_policy")
-    a, b = (read_meta(p).get("config", {}) for p in (main, extra))
+    a, b = main_config, read_meta(extra).get("config", {})
     if not a.get("custom_policy", True) and all(a.get(k) == b.get(k) for k in keys):
         raise DatasetError(f"extra dataset {extra} was collected as the main dataset {main} was (seed {b.get('seed')}, "
                            f"noise {b.get('noise')}): the same episodes would count twice; use another seed")
