@@ -8,8 +8,10 @@ from tensordict import TensorDict
 
 from trakdis.data import DataConfig, DatasetError, collect_expert_dataset, expert_labels, load_trajectories
 from trakdis.data.loading import load_offline_data
-from trakdis.envs import EXPERT_VERSION, expert_action, task_spec
+from trakdis.envs import expert_action, expert_version, task_spec
 from trakdis.utils.phases import PhaseTimer
+
+CLOTHFOLD_EXPERT = expert_version("ClothFold")
 
 
 def _steps(lengths, horizon=4, task="ClothFold"):
@@ -18,7 +20,7 @@ def _steps(lengths, horizon=4, task="ClothFold"):
     steps = TensorDict({"state": 0.1 * torch.randn(n, horizon, spec.state_dim),
                         "step_count": torch.arange(horizon).expand(n, horizon).unsqueeze(-1).clone(),
                         "action": torch.zeros(n, horizon, spec.action_dim)}, [n, horizon])
-    meta = {"task": task, "config": {"expert_version": EXPERT_VERSION, "custom_policy": False},
+    meta = {"task": task, "config": {"expert_version": CLOTHFOLD_EXPERT, "custom_policy": False},
             "lengths": torch.tensor(lengths)}
     return steps, meta
 
@@ -35,9 +37,9 @@ def test_expert_labels_are_the_experts_actions_on_the_recorded_steps_and_zero_pa
 
 
 @pytest.mark.parametrize("config,match", [
-    ({"custom_policy": True, "expert_version": EXPERT_VERSION}, "custom policy"),
-    ({"expert_version": EXPERT_VERSION - 1}, f"version {EXPERT_VERSION - 1}, this is version {EXPERT_VERSION}"),
-    ({}, f"version 1, this is version {EXPERT_VERSION}"),  # older than the field: version 1, as ensure_dataset reads it
+    ({"custom_policy": True, "expert_version": CLOTHFOLD_EXPERT}, "custom policy"),
+    ({"expert_version": CLOTHFOLD_EXPERT - 1}, f"version {CLOTHFOLD_EXPERT - 1}, this is version {CLOTHFOLD_EXPERT}"),
+    ({}, f"version 1, this is version {CLOTHFOLD_EXPERT}"),  # older than the field: version 1, as ensure_dataset reads it
 ])
 def test_a_dataset_this_expert_did_not_collect_is_not_relabelled(config, match):
     steps, meta = _steps([4])

@@ -4,7 +4,9 @@ import json
 import pytest
 
 from trakdis.data import DataConfig, DatasetError, default_dataset_path, ensure_dataset
-from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
+from trakdis.envs import RENDER_VERSION, expert_version
+
+CLOTHFOLD_EXPERT = expert_version("ClothFold")
 
 
 def _fake_dataset(path, expert_version, task="ClothFold", horizon=100, render_version=RENDER_VERSION):
@@ -37,12 +39,12 @@ def test_data_seed_names_the_dataset_and_seeds_its_collection(tmp_path, monkeypa
     assert calls[-1] == (tmp_path / "ClothFold_2ep_h4_noise0.15", 3)  # unset: the run's seed, the path as before
 
 
-@pytest.mark.parametrize("found", [None, EXPERT_VERSION - 1])
+@pytest.mark.parametrize("found", [None, CLOTHFOLD_EXPERT - 1])
 def test_default_dataset_of_an_older_expert_is_refused(tmp_path, found):
     cfg = DataConfig(root=str(tmp_path), episodes=3)
     path = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
     _fake_dataset(path, found)
-    with pytest.raises(DatasetError, match=rf"{path.name}.*version {found or 1} of the scripted expert.*--data.path"):
+    with pytest.raises(DatasetError, match=rf"{path.name}.*version {found or 1} of the ClothFold scripted expert.*--data.path"):
         ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True)
     # an explicit --data.path is used as it is
     explicit = DataConfig(path=str(path))
@@ -52,7 +54,7 @@ def test_default_dataset_of_an_older_expert_is_refused(tmp_path, found):
 def test_default_dataset_of_the_current_expert_is_used(tmp_path):
     cfg = DataConfig(root=str(tmp_path), episodes=3)
     path = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
-    _fake_dataset(path, EXPERT_VERSION)
+    _fake_dataset(path, CLOTHFOLD_EXPERT)
     assert ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True) == path
 
 
@@ -60,7 +62,7 @@ def test_default_dataset_of_the_current_expert_is_used(tmp_path):
 def test_dataset_of_another_task_or_horizon_is_refused(tmp_path, task, horizon):
     """A pinned dataset must not train a policy labelled unpinned, nor horizon-20 data a horizon-30 run."""
     path = tmp_path / "data"
-    _fake_dataset(path, EXPERT_VERSION, task=task, horizon=horizon)
+    _fake_dataset(path, CLOTHFOLD_EXPERT, task=task, horizon=horizon)
     before = (path / "meta.json").read_bytes()
     with pytest.raises(DatasetError, match=rf"dataset {path} \(--data.path\) holds task {task} with horizon {horizon}, "
                                            rf"but this run asks for --task ClothFoldDiagonalUnpinned --horizon 30"):
@@ -87,7 +89,7 @@ def test_horizon_below_one_is_refused(tmp_path):
 def test_default_pixel_dataset_of_an_older_rendering_is_refused(tmp_path, found):
     cfg = DataConfig(root=str(tmp_path), episodes=3)
     path = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
-    _fake_dataset(path, EXPERT_VERSION, render_version=found)
+    _fake_dataset(path, CLOTHFOLD_EXPERT, render_version=found)
     with pytest.raises(DatasetError, match="rendering version"):
         ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True)
 
@@ -122,7 +124,7 @@ def test_load_offline_data_prefers_an_existing_pixel_dataset_and_prints_its_retu
 
     cfg = DataConfig(root=str(tmp_path), episodes=2, num_envs=1)
     if with_pixels:  # found: used as it is, although this run asks for no images
-        _fake_dataset(default_dataset_path(cfg, task="ClothFold", horizon=3, pixels=True), EXPERT_VERSION, horizon=3)
+        _fake_dataset(default_dataset_path(cfg, task="ClothFold", horizon=3, pixels=True), CLOTHFOLD_EXPERT, horizon=3)
     asked = []
     monkeypatch.setattr(loading, "ensure_dataset_timed", lambda cfg, *, pixels, **kw: asked.append(pixels) or tmp_path / "d")
     steps = TensorDict({"state": torch.zeros(2, 3, 4), "action": torch.zeros(2, 3, 2), "pixels": torch.zeros(2, 3, 1),
@@ -303,3 +305,17 @@ def test_student_buffer_keys_proprioception_and_noise(distill, proprio):
     else:
         est = batch["state_estimate"][real] * 2.0 - 100.0  # back in state units: state + noise
         assert 0.0 < (est - est.round()).abs().mean() < 0.5  # states are integers here, the noise is not
+
+
+def test_expert_versions_are_per_task(tmp_path):
+    """A task whose expert changed refuses its older default datasets; another task keeps them."""
+    cfg = DataConfig(root=str(tmp_path), episodes=3)
+    cloth = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
+    _fake_dataset(cloth, 2)
+    assert ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True) == cloth
+    task = "ClothFoldDiagonalUnpinned"
+    diagonal = default_dataset_path(cfg, task=task, horizon=100, pixels=True)
+    _fake_dataset(diagonal, 2, task=task)
+    with pytest.raises(DatasetError, match=rf"{diagonal.name}.*version 2 of the {task} scripted expert.*version "
+                                           rf"{expert_version(task)}"):
+        ensure_dataset(cfg, task=task, horizon=100, seed=0, pixels=True)

@@ -127,3 +127,31 @@ def test_aim_error_misplaces_the_source_corners_per_episode():
     for bad in (-0.01, float("nan")):
         with pytest.raises(ValueError, match="aim_error"):
             ExpertPolicy(task, aim_error=bad)
+
+
+def test_grasp_lift_raises_a_corner_still_on_the_table_straight_up():
+    """The unpinned fold's first carry step (``DEFAULT_GRASP_LIFT``): with the picker on its source corner and the
+    corner on the table, the picker rises straight up by ``grasp_lift`` and closes; once the corner is lifted, the
+    fold arc as before. ClothFold's expert is unchanged (its default is 0: the arc from the first step)."""
+    from trakdis.envs import expert_version
+    from trakdis.envs.experts import DEFAULT_GRASP_LIFT
+
+    task = "ClothFoldDiagonalUnpinned"
+    state = ClothEnv(task=task).reset(seed=0)[0]["state"].astype(np.float64)
+    state[12:15] = state[0:3]  # picker 0 on its source corner c00, which lies on the table
+    lift = expert_action(task, state, 5)
+    np.testing.assert_allclose(lift, [0.0, 0.0, DEFAULT_GRASP_LIFT[task] / 0.06, 1.0], atol=1e-6)
+    arc = expert_action(task, state, 5, grasp_lift=0.0)
+    assert arc[3] == 1.0 and arc[2] > 0.5  # the arc's first step lifts ~5 cm in the closing step
+    np.testing.assert_allclose(expert_action(task, state, 5, grasp_lift=0.03)[:3], [0.0, 0.0, 0.5], atol=1e-6)
+    raised = state.copy()
+    raised[2] += 0.02  # the corner lifted: the arc, whatever grasp_lift
+    raised[12:15] = raised[0:3] + [0.0, 0.0, 0.005]
+    np.testing.assert_array_equal(expert_action(task, raised, 5), expert_action(task, raised, 5, grasp_lift=0.0))
+    cloth = ClothEnv(task="ClothFold").reset(seed=0)[0]["state"].astype(np.float64)
+    cloth[12:15] = cloth[3:6]  # picker 0 on its source corner c0N
+    np.testing.assert_array_equal(expert_action("ClothFold", cloth, 5), expert_action("ClothFold", cloth, 5, grasp_lift=0.0))
+    assert expert_version("ClothFold") == expert_version("ClothFoldDiagonalPinned") == 2 and expert_version(task) == 3
+    for bad in (-0.01, float("nan")):
+        with pytest.raises(ValueError, match="grasp_lift"):
+            expert_action(task, state, 5, grasp_lift=bad)

@@ -44,7 +44,7 @@ def test_new_expert_version_invalidates(tmp_path, monkeypatch):
 
     k = key()
     write_expert_scores(expert_score_path(tmp_path, k), k, [0.8, 0.9, 0.7], returns=[-5.0, -4.0, -6.0])
-    monkeypatch.setattr(trakdis.envs, "EXPERT_VERSION", trakdis.envs.EXPERT_VERSION + 1)
+    monkeypatch.setitem(trakdis.envs.experts.EXPERT_VERSIONS, k["task"], k["expert_version"] + 1)
     k2 = key()
     assert k2["expert_version"] == k["expert_version"] + 1
     assert read_expert_scores(expert_score_path(tmp_path, k2), k2) is None

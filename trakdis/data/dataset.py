@@ -227,7 +227,7 @@ def collect_expert_dataset(
         policy_fn(None)  # the expert's own checks (noise, aim_error) reject bad values before anything is on disk
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
-    from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
+    from trakdis.envs import RENDER_VERSION, expert_version
 
     config = {
         "task": task,
@@ -241,7 +241,7 @@ def collect_expert_dataset(
         "horizon": int(horizon),
         "custom_env": make_env_fn is not None,
         "custom_policy": make_policy_fn is not None,
-        "expert_version": None if make_policy_fn is not None else EXPERT_VERSION,
+        "expert_version": None if make_policy_fn is not None else expert_version(task),
         "render_version": RENDER_VERSION if from_pixels and make_env_fn is None else None,
     }
     if aim_error:  # only then: the config of every other dataset (and of a collection to resume) stays as it was

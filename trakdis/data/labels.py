@@ -36,15 +36,15 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
 
     Raises :class:`~trakdis.data.DatasetError` (naming ``path``) for a dataset that this expert did not
     collect: a custom policy, or another version of the scripted expert (its labels would differ)."""
-    from trakdis.envs.experts import EXPERT_VERSION, expert_action
+    from trakdis.envs.experts import expert_action, expert_version
     from trakdis.envs.specs import task_spec
 
     if meta.get("config", {}).get("custom_policy", False):
         raise DatasetError(f"{path}: collected by a custom policy, so the scripted expert cannot relabel its actions "
                            "(use --data.action-labels executed)")
-    version = collected_expert_version(meta)
-    if version != EXPERT_VERSION:
-        raise DatasetError(f"{path}: collected by scripted expert version {version}, this is version {EXPERT_VERSION}; "
+    version, current = collected_expert_version(meta), expert_version(meta["task"])
+    if version != current:
+        raise DatasetError(f"{path}: collected by scripted expert version {version}, this is version {current}; "
                            "its actions cannot be relabelled (recollect it, or use --data.action-labels executed)")
     missing = [k for k in ("state", "step_count", "action") if k not in steps.keys()]
     if missing:

@@ -74,7 +74,7 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 
     An existing dataset must hold episodes of ``task`` with ``horizon`` steps (its ``meta.json``):
     anything else is a :class:`~trakdis.data.DatasetError` naming the path and both values."""
-    from trakdis.envs import EXPERT_VERSION, RENDER_VERSION
+    from trakdis.envs import RENDER_VERSION, expert_version
 
     if horizon < 1:
         raise ValueError(f"--horizon {horizon}: the episode length must be >= 1")
@@ -89,11 +89,11 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                 f"asks for --task {task} --horizon {horizon}; pass a dataset of that task and horizon (or none, "
                 f"to collect one)")
         if not cfg.path:  # a default dataset must come from the current scripted expert
-            found = collected_expert_version(meta)
-            if found != EXPERT_VERSION:
+            found, version = collected_expert_version(meta), expert_version(task)
+            if found != version:
                 raise DatasetError(
-                    f"{path} was collected with version {found} of the scripted expert; this trakdis has "
-                    f"version {EXPERT_VERSION} (docs/tasks.md). Delete the directory to collect it again, or "
+                    f"{path} was collected with version {found} of the {task} scripted expert; this trakdis has "
+                    f"version {version} (docs/tasks.md). Delete the directory to collect it again, or "
                     f"pass --data.path {path} to use it anyway")
             found = meta.get("config", {}).get("render_version", 1)
             if pixels and found != RENDER_VERSION:

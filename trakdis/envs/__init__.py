@@ -17,7 +17,7 @@ from trakdis.envs.cloth_env import (  # noqa: E402
     ClothFoldEnv,
     ENV_CLASSES,
 )
-from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_noise, expert_action  # noqa: E402
+from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_noise, expert_action, expert_version  # noqa: E402
 from trakdis.envs.model import PICKER_MARKER_RADIUS, RENDER_VERSION  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
 from trakdis.envs.torchrl_env import ClothInfoReader, make_env, with_contract_keys  # noqa: E402
@@ -45,6 +45,7 @@ __all__ = [
     "ClothFoldDiagonalUnpinnedEnv",
     "ExpertPolicy",
     "expert_action",
+    "expert_version",
     "make_env",
     "ClothInfoReader",
     "with_contract_keys",

@@ -50,11 +50,11 @@ def expert_score_key(*, task: str, split: str, horizon: int, episodes: int, seed
     random stream of environment ``i % num_envs``, so another count plays other configurations."""
     import mujoco
 
-    from trakdis.envs import EXPERT_VERSION
+    from trakdis.envs import expert_version
 
     return {"task": str(task), "split": str(split), "horizon": int(horizon), "episodes": int(episodes),
             "seed": int(seed), "num_envs": int(num_envs), "expert_noise": float(expert_noise),
-            "expert_version": int(EXPERT_VERSION), "mujoco": str(mujoco.__version__)}
+            "expert_version": int(expert_version(task)), "mujoco": str(mujoco.__version__)}
 
 
 def expert_score_path(root: str | Path, key: Mapping[str, Any]) -> Path:
