@@ -54,6 +54,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference  # noqa: E402
+from trakdis.method import ENCODER_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args, teacher_stage_args  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
 from trakdis.utils.stages import Stages  # noqa: E402
@@ -91,13 +92,15 @@ class Table1Config(RunConfig):
     """methods to run and tabulate"""
     trials: int = 100
     """evaluation episodes per policy and seed (eval split)"""
-    teacher_args: str = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
-    """options of recipes/online_dt.py (recipes/pipeline.py's default teacher; the stage collects the images
-    for the encoder and evaluates nothing itself, unless these say otherwise)"""
-    encoder_args: str = "--extra-noise 0.5"
-    """options of recipes/train_encoder.py (No-Aug adds --no-aug)"""
+    teacher_args: str = TEACHER_ARGS
+    """options of recipes/online_dt.py (the method's teacher, as recipes/pipeline.py runs it: trakdis.method;
+    the stage collects the images for the encoder and evaluates nothing itself, unless these say otherwise)"""
+    encoder_args: str = ENCODER_ARGS
+    """options of recipes/train_encoder.py (the method's encoder, trained also on the teacher's weight-copied
+    student's images and chosen by its episodes: trakdis.method; No-Aug adds --no-aug)"""
     student_args: str = "--eval-every 2 --eval-episodes 20 --no-eval-teacher"
-    """options of recipes/distill.py (all four arms; the ablations add their flag)"""
+    """options of recipes/distill.py beside the method's (all four arms, the curves' evaluations; the
+    ablations add their flag)"""
     bc_args: str = ""
     """options of recipes/bc_image.py"""
     dt_image_args: str = ""
@@ -136,7 +139,7 @@ class Table1Config(RunConfig):
 PRESETS = {"quick": {
     "seeds": 1,
     "trials": 20,
-    "encoder_args": "--epochs 5",
+    "encoder_args": "--extra-noise 0.5 --epochs 5 --student-rounds 1 --student-episodes 10 --student-epochs 2",
     "student_args": "--rounds 4 --updates-per-round 25 --eval-every 2 --eval-episodes 10 --select-episodes 10 "
                     "--no-eval-teacher",
     "bc_args": "--epochs 5",
@@ -154,7 +157,6 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     stage = functools.partial(stages.run, seed=seed)  # every stage of this task and seed
     evaluation = functools.partial(stages.submit if cfg.overlap else stages.run, "evaluate", seed=seed)
     parallel = ["--parallel"] if cfg.parallel else ["--no-parallel"]
-    student_args = [*parallel, *shlex.split(cfg.student_args)]  # the curves' evaluations
     methods = set(cfg.methods)
     needs_teacher = methods & {"teacher", "trakdis", "no_aug", "no_pretrain", "no_distill"}
     policies: dict[str, Path] = {}
@@ -179,20 +181,24 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     if needs_teacher:
         # with the images the encoder stage reads (one collection, not two); evaluated by evaluate.py
         teacher = made("teacher", stage("online_dt", f"{base}-teacher", "policy.pt",
-                                        ["--task", task, "--collect-pixels", "--eval-episodes", "0",
-                                         *shlex.split(cfg.teacher_args)]))
+                                        teacher_stage_args(task, cfg.teacher_args)))
+
+    def encoder_stage(run_name: str, *flags: str) -> Path:  # the method's encoder (+ an ablation's flags)
+        return stage("train_encoder", run_name, "encoder.pt",
+                     [*encoder_stage_args(task, teacher, cfg.encoder_args, parallel=cfg.parallel), *flags])
+
+    def student_stage(run_name: str, encoder: Path, *flags: str) -> Path:  # the method's student (+ flags)
+        return stage("distill", run_name, "policy.pt",
+                     [*student_stage_args(teacher, encoder, cfg.student_args, parallel=cfg.parallel), *flags])
+
     if methods & {"trakdis", "no_pretrain", "no_distill"}:
-        encoder = stage("train_encoder", f"{base}-encoder", "encoder.pt", ["--task", task, *shlex.split(cfg.encoder_args)])
+        encoder = encoder_stage(f"{base}-encoder")
     arms = {"trakdis": [], "no_pretrain": ["--no-weight-copy"], "no_distill": ["--no-distill"]}
     for method, flags in arms.items():
         if method in methods:
-            made(method, stage("distill", f"{base}-{method}", "policy.pt",
-                               ["--teacher", str(teacher), "--encoder", str(encoder), *student_args, *flags]))
+            made(method, student_stage(f"{base}-{method}", encoder, *flags))
     if "no_aug" in methods:
-        enc_noaug = stage("train_encoder", f"{base}-encoder-noaug", "encoder.pt",
-                          ["--task", task, *shlex.split(cfg.encoder_args), "--no-aug"])
-        made("no_aug", stage("distill", f"{base}-no_aug", "policy.pt",
-                             ["--teacher", str(teacher), "--encoder", str(enc_noaug), *student_args]))
+        made("no_aug", student_stage(f"{base}-no_aug", encoder_stage(f"{base}-encoder-noaug", "--no-aug")))
     # the baselines evaluate nothing themselves: evaluate.py does (their --*-args may say otherwise)
     if "bc_image" in methods:
         made("bc_image", stage("bc_image", f"{base}-bc_image", "policy.pt",
@@ -205,9 +211,7 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     robust = {}
     if cfg.noise_levels and "trakdis" in methods:
         students = {"trakdis": policies["trakdis"],
-                    "trakdis_noise": stage("distill", f"{base}-trakdis_noise", "policy.pt",
-                                           ["--teacher", str(teacher), "--encoder", str(encoder),
-                                            *student_args, "--state-noise", str(cfg.train_noise)])}
+                    "trakdis_noise": student_stage(f"{base}-trakdis_noise", encoder, "--state-noise", str(cfg.train_noise))}
         levels = [str(x) for x in cfg.noise_levels]
         for method, policy in students.items():
             robust[method] = evaluation(f"{base}-noise-{method}", "summary.csv",

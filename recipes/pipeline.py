@@ -18,8 +18,8 @@
    the student's training leave idle (``--no-background-expert``: after them); the teacher's and
    the student's, the encoder stage's rollouts and selection episodes and the student stage's selection
    episodes, on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
-   The stages evaluate nothing themselves (``TEACHER_EVAL``, ``STUDENT_EVAL``: ``--eval-episodes 0``;
-   a stage's own ``--eval-episodes`` in its ``--*-args`` wins): the table has the evaluations.
+   The stages evaluate nothing themselves (``--eval-episodes 0``; a stage's own ``--eval-episodes`` in its
+   ``--*-args`` wins): the table has the evaluations. Each stage's default options: ``trakdis.method``.
 
 Each stage is an ordinary run of its recipe under ``<root>/<recipe>/<name>-<stage>``; a stage whose
 output file exists is skipped and an interrupted one is resumed, so ``--resume`` continues the
@@ -30,7 +30,6 @@ the teacher and encoder stages (the student inherits it from the teacher). Write
 """
 from __future__ import annotations
 
-import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,14 +38,13 @@ import pandas as pd
 
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import write_summary_table
+from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args,
+                            teacher_stage_args)
 from trakdis.policies import load_policy
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.stages import Stages
 
 RECIPES = Path(__file__).resolve().parent
-# The stages' own evaluations would repeat what the table measures on --trials episodes: none.
-TEACHER_EVAL = ["--eval-episodes", "0"]
-STUDENT_EVAL = ["--eval-episodes", "0"]
 
 
 @dataclass
@@ -56,15 +54,14 @@ class PipelineConfig(RunConfig):
     task: TaskName = "ClothFold"
     """cloth task"""
     trials: int = 100  # evaluation episodes per policy (eval split, the same configurations for all three)
-    teacher_args: str = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
+    teacher_args: str = TEACHER_ARGS
     """extra options for recipes/online_dt.py (default: the offline teacher trained on states with
-    1 cm of Gaussian noise, so that its weights act on an encoder's estimates; the arm measured
-    in docs/recipes/distill.md)"""
-    encoder_args: str = "--extra-noise 0.5 --members 3 --select-episodes 30"
+    1 cm of Gaussian noise, so that its weights act on an encoder's estimates; trakdis.method)"""
+    encoder_args: str = ENCODER_ARGS
     """extra options for recipes/train_encoder.py (default: noisy-expert images added to training; three
-    encoders trained side by side, the one whose weight copy folds best on 30 train-split episodes kept:
-    which draw the copy gets was the largest effect on the student, docs/recipes/train_encoder.md)"""
-    student_args: str = ""
+    encoders trained side by side, the one whose weight copy folds best on 30 train-split episodes kept;
+    trakdis.method)"""
+    student_args: str = STUDENT_ARGS
     """extra options for recipes/distill.py"""
     mask_unseen_pickers: bool = False
     """pass --mask-unseen-pickers to the teacher and encoder stages (pickers out of the camera view masked)"""
@@ -79,21 +76,20 @@ def main(argv=None) -> pd.DataFrame:
     run = Run.start("pipeline", PipelineConfig, argv, description=__doc__)
     cfg, name = run.cfg, run.dir.name
     stages = Stages(run, RECIPES)
-    mask = ["--mask-unseen-pickers"] if cfg.mask_unseen_pickers else []
-    parallel = ["--parallel"] if cfg.parallel else []
+    mask = cfg.mask_unseen_pickers
+    parallel = ["--parallel"] if cfg.parallel else []  # the evaluations
     teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt",
-                         ["--task", cfg.task, "--collect-pixels", *mask, *TEACHER_EVAL, *shlex.split(cfg.teacher_args)])
+                         teacher_stage_args(cfg.task, cfg.teacher_args, mask_unseen_pickers=mask))
     horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
     evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
     expert = stages.run("evaluate", f"{name}-eval-expert", "summary.csv", ["--policy", "expert", *evaluate],
                         background=cfg.background_expert)
     with stages.cleanup(expert):  # an error before it finished: the expert's background stage is stopped
         encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
-                             ["--task", cfg.task, "--teacher", str(teacher), *mask, *parallel,
-                              *shlex.split(cfg.encoder_args)])
+                             encoder_stage_args(cfg.task, teacher, cfg.encoder_args, parallel=cfg.parallel,
+                                                mask_unseen_pickers=mask))
         student = stages.run("distill", f"{name}-student", "policy.pt",
-                             ["--teacher", str(teacher), "--encoder", str(encoder), *STUDENT_EVAL, *parallel,
-                              *shlex.split(cfg.student_args)])
+                             student_stage_args(teacher, encoder, cfg.student_args, parallel=cfg.parallel))
         directories = {"expert": stages.wait(expert)}
     for label, policy in (("teacher", str(teacher)), ("student", str(student))):
         directories[label] = stages.run("evaluate", f"{name}-eval-{label}", "summary.csv",

@@ -3,7 +3,7 @@
 Subpackages, lowest floor first: ``utils`` (generic helpers), ``envs`` (MuJoCo cloth tasks),
 ``modules`` (Decision Transformer, encoder), ``transforms``, ``objectives`` (losses), ``data``
 (episode layout, datasets, replay buffer), ``evaluation``, ``policies`` (saved policies), ``optim``,
-``training`` (the recipes' update loop).
+``training`` (the recipes' update loop), ``method`` (the method's stages and their default options).
 """
 
 import os as _os

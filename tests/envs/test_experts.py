@@ -155,3 +155,9 @@ def test_grasp_lift_raises_a_corner_still_on_the_table_straight_up():
     for bad in (-0.01, float("nan")):
         with pytest.raises(ValueError, match="grasp_lift"):
             expert_action(task, state, 5, grasp_lift=bad)
+        with pytest.raises(ValueError, match="grasp_lift"):  # refused when the policy is built, not at its first step
+            ExpertPolicy(task, grasp_lift=bad)
+    with pytest.raises(ValueError, match="noise"):
+        ExpertPolicy(task, noise=float("nan"))
+    with pytest.raises(TypeError, match="grasp_lfit"):
+        ExpertPolicy(task, grasp_lfit=0.01)

@@ -108,7 +108,8 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
             "--teacher-args=" + " ".join([*h, *data, *dt, "--offline-updates", "2", "--online-rounds", "0",
                                           "--eval-episodes", "1", "--expert-episodes", "0", "--log-every", "1"]),
             "--encoder-args=" + " ".join([*h, *data, "--epochs", "1", "--batch-size", "8", "--channels", "4", "4", "4", "4",
-                                          "--hidden-dim", "8"]),
+                                          "--hidden-dim", "8", "--student-rounds", "1", "--student-episodes", "1",
+                                          "--student-epochs", "1"]),
             "--student-args=" + " ".join([*data, "--rounds", "1", "--updates-per-round", "1", "--eval-episodes", "1",
                                           "--eval-every", "1", "--select-episodes", "0", "--batch-size", "4",
                                           "--no-eval-teacher"]),
@@ -211,6 +212,15 @@ def test_table1_stages_and_their_options():
     assert order.index("t-ClothFold-s3-eval-trakdis") < order.index("t-ClothFold-s3-no_pretrain")
     students = {name: args for name, (recipe, args, _) in calls.items() if recipe == "distill"}
     assert len(students) == 5 and all("--parallel" in a for a in students.values())
+    # the method's encoder (trakdis.method, as recipes/pipeline.py runs it): on the teacher's weight-copied student,
+    # three members, the copy's selection; No-Aug the same encoder without augmentation
+    teacher = str(Path("runs") / "online_dt" / "t-ClothFold-s3-teacher")
+    for name in ("t-ClothFold-s3-encoder", "t-ClothFold-s3-encoder-noaug"):
+        args = calls[name][1]
+        assert args[args.index("--teacher") + 1] == teacher and "--parallel" in args, name
+        assert " ".join(args).count("--extra-noise 0.5 --members 3 --select-episodes 30") == 1, name
+    assert calls["t-ClothFold-s3-encoder-noaug"][1][-1] == "--no-aug" and "--no-aug" not in calls["t-ClothFold-s3-encoder"][1]
+    assert all(args[args.index("--teacher") + 1] == teacher for args in students.values())
     noisy = students["t-ClothFold-s3-trakdis_noise"]
     assert noisy[noisy.index("--state-noise") + 1] == "0.001" and "--state-noise" not in students["t-ClothFold-s3-trakdis"]
     for name in ("t-ClothFold-s3-bc_image", "t-ClothFold-s3-dt_image"):

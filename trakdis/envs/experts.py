@@ -239,10 +239,12 @@ class ExpertPolicy(TensorDictModuleBase):
                  **expert_kwargs):
         super().__init__()
         self.task = check_task(task)
-        if noise < 0:
+        if not noise >= 0:  # also NaN
             raise ValueError(f"noise must be >= 0, got {noise}")
         if not aim_error >= 0:  # also NaN
             raise ValueError(f"aim_error must be >= 0 (metres), got {aim_error}")
+        # the expert's own options checked now, not at the first step of a rollout: one action on a flat state
+        expert_action(self.task, np.zeros(task_spec(self.task).state_dim), 0, **expert_kwargs)
         self.noise = float(noise)
         self.aim_error = float(aim_error)
         self.expert_kwargs = expert_kwargs

@@ -1,0 +1,54 @@
+"""TraKDis as stages of its recipes: the one definition of what each stage runs by default.
+
+``recipes/pipeline.py`` runs the method on one task; ``benchmarks/table1.py`` runs it, its ablations
+and the image baselines over tasks and seeds. Both build the teacher's, the encoder's and the
+student's arguments here, so that the TraKDis of Table I is the pipeline's. Each function returns a recipe's command-line arguments, the method's defaults first and a
+caller's ``extra`` options last (the later flag wins).
+
+    teacher = stages.run("online_dt", "t", "policy.pt", teacher_stage_args("ClothFold"))
+    encoder = stages.run("train_encoder", "e", "encoder.pt", encoder_stage_args("ClothFold", teacher))
+    student = stages.run("distill", "s", "policy.pt", student_stage_args(teacher, encoder))
+"""
+from __future__ import annotations
+
+import shlex
+from os import PathLike
+
+TEACHER_ARGS = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
+"""recipes/online_dt.py: the offline teacher trained on states with 1 cm of Gaussian noise, so that its
+weights act on an encoder's estimates (docs/recipes/distill.md)"""
+ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
+"""recipes/train_encoder.py: noisy-expert images added to training; three encoders trained side by side, the
+one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest
+effect on the student, docs/recipes/train_encoder.md)"""
+STUDENT_ARGS = ""
+"""recipes/distill.py: its own defaults (weight copy, distillation on the expert data, the per-task snapshot
+selection)"""
+
+
+def _flags(*, parallel: bool, mask_unseen_pickers: bool = False) -> list[str]:
+    return (["--mask-unseen-pickers"] if mask_unseen_pickers else []) + (["--parallel"] if parallel else [])
+
+
+def teacher_stage_args(task: str, extra: str = TEACHER_ARGS, *, mask_unseen_pickers: bool = False) -> list[str]:
+    """``recipes/online_dt.py``: the expert dataset, collected with the images the encoder stage reads
+    (one collection, not two), and the privileged teacher; it evaluates nothing itself (the callers do)."""
+    return ["--task", task, "--collect-pixels", *_flags(parallel=False, mask_unseen_pickers=mask_unseen_pickers),
+            "--eval-episodes", "0", *shlex.split(extra)]
+
+
+def encoder_stage_args(task: str, teacher: str | PathLike, extra: str = ENCODER_ARGS, *, parallel: bool = True,
+                       mask_unseen_pickers: bool = False) -> list[str]:
+    """``recipes/train_encoder.py``: the encoder, also trained on the images of the ``teacher``'s weight-copied
+    student (its rounds of rollouts) and chosen by that copy's episodes; ``parallel``: those episodes on 2
+    worker processes (the same episodes)."""
+    return ["--task", task, "--teacher", str(teacher),
+            *_flags(parallel=parallel, mask_unseen_pickers=mask_unseen_pickers), *shlex.split(extra)]
+
+
+def student_stage_args(teacher: str | PathLike, encoder: str | PathLike, extra: str = STUDENT_ARGS, *,
+                       parallel: bool = True) -> list[str]:
+    """``recipes/distill.py``: the image-only student, the ``teacher``'s weights reading the ``encoder``'s
+    estimates, distilled; it evaluates nothing itself unless ``extra`` says so."""
+    return ["--teacher", str(teacher), "--encoder", str(encoder), "--eval-episodes", "0",
+            *_flags(parallel=parallel), *shlex.split(extra)]
