@@ -9,7 +9,7 @@ TRAKDIS = Path(__file__).resolve().parents[2] / "trakdis"
 
 # floor of each part of trakdis: a part may import its own floor and the floors below it
 FLOORS = {"utils": 0, "envs": 1, "modules": 2, "transforms": 2, "objectives": 3, "data": 3,
-          "evaluation": 4, "policies": 4, "optim": 4, "training": 4}
+          "evaluation": 4, "policies": 4, "optim": 4, "training": 4, "method": 4}
 
 
 def imported_modules(source: str, module: str) -> list[str]:
