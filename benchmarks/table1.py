@@ -134,12 +134,13 @@ class Table1Config(RunConfig):
             raise ValueError("--tasks and --methods need at least one value each")
 
 
-# --quick: one seed, 20 trials, short encoder/student/baseline training, no robustness study. The teacher keeps its 1500
+# --quick: one seed, 20 trials, short encoder/student/baseline training (the encoder: one member, 5 epochs and one
+# round of 10 weight-copy episodes, no noisy expert's dataset), no robustness study. The teacher keeps its 1500
 # offline updates: with 500 it scored 0.000 on all 20 trials (it never grasped; README, Table I).
 PRESETS = {"quick": {
     "seeds": 1,
     "trials": 20,
-    "encoder_args": "--extra-noise 0.5 --epochs 5 --student-rounds 1 --student-episodes 10 --student-epochs 2",
+    "encoder_args": "--epochs 5 --student-rounds 1 --student-episodes 10 --student-epochs 2",
     "student_args": "--rounds 4 --updates-per-round 25 --eval-every 2 --eval-episodes 10 --select-episodes 10 "
                     "--no-eval-teacher",
     "bc_args": "--epochs 5",
