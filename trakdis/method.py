@@ -26,14 +26,14 @@ STUDENT_ARGS = ""
 selection)"""
 
 
-def _flags(*, parallel: bool, mask_unseen_pickers: bool = False) -> list[str]:
+def _flags(*, parallel: bool = False, mask_unseen_pickers: bool = False) -> list[str]:
     return (["--mask-unseen-pickers"] if mask_unseen_pickers else []) + (["--parallel"] if parallel else [])
 
 
 def teacher_stage_args(task: str, extra: str = TEACHER_ARGS, *, mask_unseen_pickers: bool = False) -> list[str]:
     """``recipes/online_dt.py``: the expert dataset, collected with the images the encoder stage reads
     (one collection, not two), and the privileged teacher; it evaluates nothing itself (the callers do)."""
-    return ["--task", task, "--collect-pixels", *_flags(parallel=False, mask_unseen_pickers=mask_unseen_pickers),
+    return ["--task", task, "--collect-pixels", *_flags(mask_unseen_pickers=mask_unseen_pickers),
             "--eval-episodes", "0", *shlex.split(extra)]
 
 
