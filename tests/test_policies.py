@@ -49,6 +49,33 @@ def test_policy_and_encoder_files(tmp_path):
         load_policy(tmp_path / "bad.pt")
 
 
+def test_image_networks_of_another_rendering_are_refused(tmp_path, monkeypatch):
+    import trakdis.envs.model
+    from trakdis.envs import render_version
+    from trakdis.utils.checkpoint import load_checkpoint
+
+    task = "ClothFoldDiagonalUnpinned"
+    enc = NormalizedEncoder(StateEncoder(15, channels=(4, 4, 4, 4), hidden_dim=8), torch.zeros(15), torch.ones(15))
+    save_encoder(tmp_path / "encoder.pt", enc, task=task)
+    _, data = load_encoder(tmp_path / "encoder.pt", task=task)  # today's rendering: loads
+    assert data["render_version"] == render_version(task)
+    cfg, actor = tiny_actor("state_estimate")
+    save_policy(tmp_path / "student.pt", kind="student", task=task, horizon=10, dt_config=cfg, actor=actor,
+                observation_key="state_estimate", target_return=-1.0, rtg_scale=1.0, encoder_file=data)
+    assert load_policy(tmp_path / "student.pt").encoder is not None
+    # an encoder file from before the unpinned fold's wider camera (no version recorded: version 2)
+    old = {k: v for k, v in load_checkpoint(tmp_path / "encoder.pt").items() if k != "render_version"}
+    save_checkpoint(tmp_path / "old.pt", old)
+    with pytest.raises(CheckpointError, match=f"old.pt: .*rendering version 2; this trakdis renders {task} at version 3"):
+        load_encoder(tmp_path / "old.pt")
+    # the task's rendering changes after the files were written: encoder and student are both refused
+    monkeypatch.setitem(trakdis.envs.model.RENDER_VERSIONS, task, render_version(task) + 1)
+    with pytest.raises(CheckpointError, match="encoder.pt: .*version 3; this trakdis renders .* at version 4"):
+        load_encoder(tmp_path / "encoder.pt")
+    with pytest.raises(CheckpointError, match=r"student.pt \(its encoder\): .*version 3"):
+        load_policy(tmp_path / "student.pt")
+
+
 def test_bad_state_noise_and_horizon_are_refused(tmp_path):
     for sigma in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="state_noise must be a finite std >= 0"):

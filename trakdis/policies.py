@@ -44,6 +44,7 @@ __all__ = [
     "save_encoder",
     "load_encoder",
     "encoder_from_dict",
+    "check_render_version",
     "IMAGE_POLICY_KINDS",
     "save_image_policy",
     "weight_copied_student",
@@ -118,10 +119,26 @@ def save_encoder(path: str | Path, encoder: NormalizedEncoder | EncoderEnsemble,
         first = encoder.members[0]
     else:
         first = encoder
+    from trakdis.envs import render_version
+
     return save_checkpoint(path, {
-        "kind": "encoder", "task": task, "encoder_kwargs": dict(first.encoder.config),
+        "kind": "encoder", "task": task, "render_version": render_version(task), "encoder_kwargs": dict(first.encoder.config),
         "state_dict": encoder.state_dict(), **dict(extra or {}), "ensemble": ensemble,
     })
+
+
+def check_render_version(data: Mapping[str, Any], task: str, source: str) -> None:
+    """Refuse (:class:`~trakdis.utils.checkpoint.CheckpointError`) a model file whose image network
+    was trained on another rendering of ``task`` than today's (:func:`trakdis.envs.render_version`):
+    it would read images unlike its training images. Files written before the version was recorded
+    count as version 2 (the 35 mm picker markers, before the unpinned fold's wider camera)."""
+    from trakdis.envs import render_version
+
+    found, current = data.get("render_version", 2), render_version(task)
+    if found != current:
+        raise CheckpointError(f"{source}: its image network was trained on {task} images of rendering version "
+                              f"{found}; this trakdis renders {task} at version {current} (docs/tasks.md), so it "
+                              f"would read other images than it learnt from: train it again")
 
 
 def encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder | EncoderEnsemble:
@@ -163,6 +180,8 @@ def load_encoder(path: str | Path, *, task: str | None = None) -> tuple[Normaliz
         raise CheckpointError(f"encoder file {path} lacks {missing}")
     if task is not None and data.get("task") != task:
         raise ValueError(f"encoder {path} is for {data.get('task')}, not {task}")
+    if data.get("task") is not None:
+        check_render_version(data, data["task"], f"encoder {path}")
     return encoder_from_dict(data), data
 
 
@@ -410,6 +429,8 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         actor.load_state_dict(data["actor"])
     except RuntimeError as err:
         raise CheckpointError(f"{path}: actor weights do not match its dt_config: {err}") from err
+    if data.get("encoder"):
+        check_render_version(data["encoder"], data["task"], f"{path} (its encoder)")
     encoder = encoder_from_dict(data["encoder"]) if data.get("encoder") else None
     if data["kind"] == "student" and encoder is None:
         raise CheckpointError(f"{path}: a student policy file must contain its encoder")
@@ -449,10 +470,12 @@ def save_image_policy(path: str | Path, *, kind: str, task: str, horizon: int, t
     (``bc_config`` or ``dt_config``), plus the acting return-to-go of a DT."""
     if kind not in IMAGE_POLICY_KINDS:
         raise ValueError(f"save_image_policy: kind must be one of {IMAGE_POLICY_KINDS}, got {kind!r}")
+    from trakdis.envs import render_version
+
     config_key = "bc_config" if kind == "bc_image" else "dt_config"
     cfg = head_config.to_dict() if hasattr(head_config, "to_dict") else dict(head_config)
     return save_checkpoint(path, {
-        "kind": kind, "task": task, "horizon": int(horizon), config_key: cfg,
+        "kind": kind, "task": task, "horizon": int(horizon), config_key: cfg, "render_version": render_version(task),
         "trunk_config": dict(trunk.config), "trunk": trunk.state_dict(), "observation_key": observation_key,
         "actor": actor.state_dict(), "target_return": float(target_return), "rtg_scale": float(rtg_scale),
         "env_kwargs": dict(env_kwargs or {}), **dict(extra or {}),
@@ -466,6 +489,7 @@ def _load_image_policy(path: Path, data: Mapping[str, Any], *, horizon: int | No
     missing = [k for k in (config_key, "trunk_config", "trunk") if k not in data]
     if missing:
         raise CheckpointError(f"{path}: a {data['kind']} policy file lacks {missing}")
+    check_render_version(data, data["task"], str(path))
     try:
         trunk = ImageTrunk.from_config(data["trunk_config"]).to(device)
         trunk.load_state_dict(data["trunk"])

@@ -4,14 +4,14 @@ import json
 import pytest
 
 from trakdis.data import DataConfig, DatasetError, default_dataset_path, ensure_dataset
-from trakdis.envs import RENDER_VERSION, expert_version
+from trakdis.envs import expert_version, render_version
 
 CLOTHFOLD_EXPERT = expert_version("ClothFold")
 
 
-def _fake_dataset(path, expert_version, task="ClothFold", horizon=100, render_version=RENDER_VERSION):
+def _fake_dataset(path, expert_version, task="ClothFold", horizon=100, render=None):
     path.mkdir(parents=True)
-    config = {"task": task, "render_version": render_version}
+    config = {"task": task, "render_version": render_version(task) if render is None else render}
     if expert_version is not None:
         config["expert_version"] = expert_version
     (path / "meta.json").write_text(json.dumps({"format": "trakdis-dataset", "version": 1, "task": task,
@@ -85,13 +85,31 @@ def test_horizon_below_one_is_refused(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("found", [None, RENDER_VERSION - 1])
+@pytest.mark.parametrize("found", ["absent", render_version("ClothFold") - 1])
 def test_default_pixel_dataset_of_an_older_rendering_is_refused(tmp_path, found):
     cfg = DataConfig(root=str(tmp_path), episodes=3)
     path = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
-    _fake_dataset(path, CLOTHFOLD_EXPERT, render_version=found)
+    _fake_dataset(path, CLOTHFOLD_EXPERT, render=found)
+    if found == "absent":  # datasets before render_version existed (version 1)
+        meta = json.loads((path / "meta.json").read_text())
+        del meta["config"]["render_version"]
+        (path / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match="rendering version"):
         ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True)
+
+
+def test_rendering_versions_are_per_task(tmp_path):
+    # the unpinned fold's camera changed (version 3) and ClothFold's did not: images of ClothFold's
+    # rendering version are refused for the unpinned fold and kept for ClothFold
+    task = "ClothFoldDiagonalUnpinned"
+    assert render_version(task) == render_version("ClothFold") + 1
+    cfg = DataConfig(root=str(tmp_path), episodes=3)
+    for name, version in ((task, expert_version(task)), ("ClothFold", CLOTHFOLD_EXPERT)):
+        _fake_dataset(default_dataset_path(cfg, task=name, horizon=100, pixels=True), version, task=name,
+                      render=render_version("ClothFold"))
+    assert ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True).exists()
+    with pytest.raises(DatasetError, match=f"{task} at version 3"):
+        ensure_dataset(cfg, task=task, horizon=100, seed=0, pixels=True)
 
 
 def test_ensure_dataset_timed_books_the_collected_episodes(tmp_path, monkeypatch):

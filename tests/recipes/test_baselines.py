@@ -84,6 +84,10 @@ def test_image_policy_file_errors(workdir, tmp_path):
         load_policy(tmp_path / "wrong.pt")
     with pytest.raises(ValueError, match="ClothFold policy, but task"):
         load_policy(path, task="ClothFoldDiagonalPinned")
+    assert data["render_version"] == 2  # its CNN learnt ClothFold's images; another rendering is refused
+    save_checkpoint(tmp_path / "older.pt", dict(data, render_version=1))
+    with pytest.raises(CheckpointError, match="rendering version 1; this trakdis renders ClothFold at version 2"):
+        load_policy(tmp_path / "older.pt")
 
 
 def load_benchmark():

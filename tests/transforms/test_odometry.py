@@ -54,7 +54,7 @@ def test_filter_is_the_running_mean_of_the_views_carried_by_the_motion():
 def test_views_of_a_picker_out_of_the_image_are_not_fused():
     from trakdis.transforms import fixed_camera_matrix
 
-    odometry = PickerOdometry([0], camera_matrix=fixed_camera_matrix(32), image_size=32)
+    odometry = PickerOdometry([0], camera_matrix=fixed_camera_matrix("ClothFold", 32), image_size=32)
     seen, unseen = torch.tensor([[0.0, 0.0, 0.05]]), torch.tensor([[0.0, 0.0, 0.3]])  # centre; lifted out of view
     assert odometry.view.visible(seen.flatten()).item() and not odometry.view.visible(unseen.flatten()).item()
     still = torch.zeros(4)

@@ -62,10 +62,13 @@ def test_state_dict_round_trip_through_the_safe_loader(tmp_path):
 def test_camera_matrix_without_gl_is_the_rendering_envs():
     from trakdis.envs.cloth_env import ENV_CLASSES
 
-    for task, size in (("ClothFold", 32), ("ClothFoldDiagonalUnpinned", 48)):
+    for task, size in (("ClothFold", 32), ("ClothFoldDiagonalPinned", 32), ("ClothFoldDiagonalUnpinned", 48)):
         env = ENV_CLASSES[task](from_pixels=True, image_size=size)
         try:
             env.reset(seed=0)
-            np.testing.assert_allclose(fixed_camera_matrix(size), env.camera_matrix(), rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(fixed_camera_matrix(task, size), env.camera_matrix(), rtol=1e-12, atol=1e-9)
         finally:
             env.close()
+    # each task has its own field of view: the unpinned fold's wider camera draws the scene smaller
+    wide, narrow = fixed_camera_matrix("ClothFoldDiagonalUnpinned", 32), fixed_camera_matrix("ClothFold", 32)
+    assert wide[0, 0] < 0.9 * narrow[0, 0]

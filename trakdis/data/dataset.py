@@ -227,7 +227,7 @@ def collect_expert_dataset(
         policy_fn(None)  # the expert's own checks (noise, aim_error) reject bad values before anything is on disk
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
-    from trakdis.envs import RENDER_VERSION, expert_version
+    from trakdis.envs import expert_version, render_version
 
     config = {
         "task": task,
@@ -242,7 +242,7 @@ def collect_expert_dataset(
         "custom_env": make_env_fn is not None,
         "custom_policy": make_policy_fn is not None,
         "expert_version": None if make_policy_fn is not None else expert_version(task),
-        "render_version": RENDER_VERSION if from_pixels and make_env_fn is None else None,
+        "render_version": render_version(task) if from_pixels and make_env_fn is None else None,
     }
     if aim_error:  # only then: the config of every other dataset (and of a collection to resume) stays as it was
         config["aim_error"] = float(aim_error)

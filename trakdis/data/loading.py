@@ -74,7 +74,7 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 
     An existing dataset must hold episodes of ``task`` with ``horizon`` steps (its ``meta.json``):
     anything else is a :class:`~trakdis.data.DatasetError` naming the path and both values."""
-    from trakdis.envs import RENDER_VERSION, expert_version
+    from trakdis.envs import expert_version, render_version
 
     if horizon < 1:
         raise ValueError(f"--horizon {horizon}: the episode length must be >= 1")
@@ -96,10 +96,10 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                     f"version {version} (docs/tasks.md). Delete the directory to collect it again, or "
                     f"pass --data.path {path} to use it anyway")
             found = meta.get("config", {}).get("render_version", 1)
-            if pixels and found != RENDER_VERSION:
+            if pixels and found != render_version(task):
                 raise DatasetError(
-                    f"{path} holds images of rendering version {found}; this trakdis renders version "
-                    f"{RENDER_VERSION} (larger picker markers, docs/tasks.md), so a policy would see other "
+                    f"{path} holds images of rendering version {found}; this trakdis renders {task} at version "
+                    f"{render_version(task)} (docs/tasks.md), so a policy would see other "
                     f"images than it was trained on. Delete the directory to collect it again, or pass "
                     f"--data.path {path} to use it anyway")
         return path

@@ -18,7 +18,7 @@ from trakdis.envs.cloth_env import (  # noqa: E402
     ENV_CLASSES,
 )
 from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_noise, expert_action, expert_version  # noqa: E402
-from trakdis.envs.model import PICKER_MARKER_RADIUS, RENDER_VERSION  # noqa: E402
+from trakdis.envs.model import PICKER_MARKER_RADIUS, camera_fovy, render_version  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
 from trakdis.envs.torchrl_env import ClothInfoReader, make_env, with_contract_keys  # noqa: E402
 from trakdis.envs.batched import SleepWaitParallelEnv, close_env, make_batched_env, start_in_background  # noqa: E402
@@ -30,7 +30,8 @@ for _task, _cls in ENV_CLASSES.items():
 
 __all__ = [
     "EXPERT_VERSION",
-    "RENDER_VERSION",
+    "camera_fovy",
+    "render_version",
     "PICKER_MARKER_RADIUS",
     "add_movement_noise",
     "TASKS",

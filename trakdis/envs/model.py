@@ -11,7 +11,11 @@ from trakdis.envs.specs import ClothConfig, check_task
 # centre. A horizontal image flip is then exactly the reflection x -> -x (see specs.TaskSpec).
 CAMERA_POS = (0.0, -0.48, 0.48)
 CAMERA_XYAXES = (1.0, 0.0, 0.0, 0.0, 1.0, 1.0)  # MJCF xyaxes: the camera's x and y axes in the world frame
-CAMERA_FOVY = 45.0
+# Vertical field of view (degrees) per task. The unpinned diagonal fold's source corner can start
+# 2-3 pixels from the 32x32 frame's left edge, where the encoder's estimate drifts and a student
+# closed loop on it leaves the frame (docs/recipes/distill.md, stop 39); its camera sees wider.
+# ClothFold's corners stay >= 4 pixels inside at 45 degrees, and a wider view shrinks its cloth.
+CAMERA_FOVY = {"ClothFold": 45.0, "ClothFoldDiagonalPinned": 45.0, "ClothFoldDiagonalUnpinned": 55.0}
 
 TABLE_RGBA = "0.55 0.47 0.38 1"
 CLOTH_RGBA = "0.25 0.45 0.85 1"
@@ -22,10 +26,23 @@ PICKER_RGBA = "0.95 0.95 0.95 1"
 # image-only encoder could not tell where it was (docs/recipes/distill.md). 35 mm is about
 # 4 pixels across at the cloth's distance.
 PICKER_MARKER_RADIUS = 0.035
-# Bumped whenever what the camera shows changes; datasets with pixels record it (images of an older
-# rendering do not match what a policy sees today).
-RENDER_VERSION = 2
+# Each task's rendering version, bumped whenever what its camera shows changes (2: the 35 mm picker
+# markers; 3: the unpinned fold's wider view). Datasets with pixels and encoder files record it:
+# images of an older rendering do not match what a policy sees today.
+RENDER_VERSIONS = {"ClothFold": 2, "ClothFoldDiagonalPinned": 2, "ClothFoldDiagonalUnpinned": 3}
 BLOCK_RGBA = "0.35 0.35 0.35 1"
+
+
+def camera_fovy(task: str) -> float:
+    """The vertical field of view (degrees) of ``task``'s fixed camera."""
+    check_task(task)
+    return CAMERA_FOVY[task]
+
+
+def render_version(task: str) -> int:
+    """The version of what ``task``'s camera shows (recorded in image datasets and encoder files)."""
+    check_task(task)
+    return RENDER_VERSIONS[task]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,7 +156,7 @@ def build_mjcf(
   <worldbody>
     <light pos="0 -0.2 1.2" dir="0 0.15 -1" castshadow="false" diffuse="0.35 0.35 0.35"/>
     <geom name="table" type="plane" size="0.8 0.8 0.01" rgba="{TABLE_RGBA}" friction="{f:.6f} 0.005 0.0001"/>
-    <camera name="main" pos="{cam[0]} {cam[1]} {cam[2]}" xyaxes="{xyaxes}" fovy="{CAMERA_FOVY}"/>
+    <camera name="main" pos="{cam[0]} {cam[1]} {cam[2]}" xyaxes="{xyaxes}" fovy="{camera_fovy(task)}"/>
     <flexcomp name="cloth" type="grid" count="{n} {n} 1" spacing="{sx:.6f} {sy:.6f} {sx:.6f}"
               pos="{config.offset_x:.6f} {config.offset_y:.6f} {r}" euler="0 0 {deg:.6f}" radius="{r}"
               dim="2" mass="{config.mass:.6f}" rgba="{CLOTH_RGBA}">

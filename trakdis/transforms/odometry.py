@@ -88,7 +88,7 @@ class PickerOdometry(Transform):
     def for_task(cls, task: str, env_kwargs: Mapping | None = None, *, image_size: int = 32,
                  in_keys: Sequence[NestedKey] | None = None) -> "PickerOdometry":
         """The filter of ``task``'s pickers, with the motion of an env made with ``env_kwargs``
-        (``move_per_substep``, ``action_repeat``; the env's defaults otherwise) and the tasks' fixed
+        (``move_per_substep``, ``action_repeat``; the env's defaults otherwise) and the task's fixed
         camera at ``image_size``."""
         import inspect
 
@@ -101,7 +101,7 @@ class PickerOdometry(Transform):
         pickers = spec.state_groups["pickers"]
         return cls(list(range(pickers.start, pickers.stop, 3)), in_keys=in_keys, action_stride=spec.action_dim // spec.num_pickers,
                    low=WORKSPACE_LOW.tolist(), high=WORKSPACE_HIGH.tolist(),
-                   camera_matrix=fixed_camera_matrix(image_size), image_size=image_size, **motion)
+                   camera_matrix=fixed_camera_matrix(task, image_size), image_size=image_size, **motion)
 
     # ------------------------------------------------------------------ the filter
     def _pickers(self, x: torch.Tensor) -> torch.Tensor:

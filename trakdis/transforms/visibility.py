@@ -24,12 +24,12 @@ DEFAULT_FILL = (0.0, 0.0, 0.4)
 """Sentinel xyz (metres) of an out-of-view picker: a point no picker of the data sits at for long."""
 
 
-def fixed_camera_matrix(image_size: int) -> np.ndarray:
+def fixed_camera_matrix(task: str, image_size: int) -> np.ndarray:
     """3 x 4 projection from world coordinates to pixel coordinates (u right, v down, pixel centres at
-    integer + 0.5) of the tasks' ``"main"`` camera in an ``image_size`` image: the same matrix as
-    ``ClothEnv(from_pixels=True).camera_matrix()`` (every task has this camera), from the constants
-    of :mod:`trakdis.envs.model` alone (no simulator, no OpenGL context)."""
-    from trakdis.envs.model import CAMERA_FOVY, CAMERA_POS, CAMERA_XYAXES
+    integer + 0.5) of ``task``'s ``"main"`` camera in an ``image_size`` image: the same matrix as
+    ``ClothEnv(from_pixels=True).camera_matrix()`` (every task has this camera, with its own field of
+    view), from the constants of :mod:`trakdis.envs.model` alone (no simulator, no OpenGL context)."""
+    from trakdis.envs.model import CAMERA_POS, CAMERA_XYAXES, camera_fovy
     from trakdis.envs.rendering import camera_projection
 
     x_axis = np.asarray(CAMERA_XYAXES[:3], dtype=np.float64)
@@ -39,7 +39,7 @@ def fixed_camera_matrix(image_size: int) -> np.ndarray:
     y_axis = y_axis - x_axis * (x_axis @ y_axis)
     y_axis = y_axis / np.linalg.norm(y_axis)
     rot = np.stack([x_axis, y_axis, np.cross(x_axis, y_axis)], axis=1)  # columns: camera axes in the world
-    return camera_projection(CAMERA_POS, rot, CAMERA_FOVY, image_size)
+    return camera_projection(CAMERA_POS, rot, camera_fovy(task), image_size)
 
 
 class OutOfViewFill:
@@ -75,7 +75,7 @@ class OutOfViewFill:
         from trakdis.envs.specs import task_spec
 
         pickers = task_spec(task).state_groups["pickers"]
-        return cls(fixed_camera_matrix(image_size), image_size, range(pickers.start, pickers.stop, 3), fill, keys)
+        return cls(fixed_camera_matrix(task, image_size), image_size, range(pickers.start, pickers.stop, 3), fill, keys)
 
     def _points(self, x: torch.Tensor) -> torch.Tensor:
         if self.starts and x.shape[-1] < max(self.starts) + 3:
