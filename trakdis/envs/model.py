@@ -12,9 +12,9 @@ from trakdis.envs.specs import ClothConfig, check_task
 CAMERA_POS = (0.0, -0.48, 0.48)
 CAMERA_XYAXES = (1.0, 0.0, 0.0, 0.0, 1.0, 1.0)  # MJCF xyaxes: the camera's x and y axes in the world frame
 # Vertical field of view (degrees) per task. The unpinned diagonal fold's source corner can start
-# 2-3 pixels from the 32x32 frame's left edge, where the encoder's estimate drifts and a student
-# closed loop on it leaves the frame (docs/recipes/distill.md, stop 39); its camera sees wider.
-# ClothFold's corners stay >= 4 pixels inside at 45 degrees, and a wider view shrinks its cloth.
+# 2-3 pixels from the 32x32 frame's left edge, where an image-only student lost its picker: its
+# camera sees wider. The pinned fold's students do not fail there, and ClothFold's distilled
+# student lost with the wider view (measured: docs/recipes/distill.md, stop 40).
 CAMERA_FOVY = {"ClothFold": 45.0, "ClothFoldDiagonalPinned": 45.0, "ClothFoldDiagonalUnpinned": 55.0}
 
 TABLE_RGBA = "0.55 0.47 0.38 1"
