@@ -29,6 +29,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from trakdis.envs.batched import make_batched_env
+from trakdis.envs.model import render_version
 from trakdis.modules.encoder import EncoderEnsemble
 from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
 from trakdis.transforms.normalization import ProprioceptionOverride, StateNormalizer
@@ -119,8 +120,6 @@ def save_encoder(path: str | Path, encoder: NormalizedEncoder | EncoderEnsemble,
         first = encoder.members[0]
     else:
         first = encoder
-    from trakdis.envs import render_version
-
     return save_checkpoint(path, {
         "kind": "encoder", "task": task, "render_version": render_version(task), "encoder_kwargs": dict(first.encoder.config),
         "state_dict": encoder.state_dict(), **dict(extra or {}), "ensemble": ensemble,
@@ -132,8 +131,6 @@ def check_render_version(data: Mapping[str, Any], task: str, source: str) -> Non
     was trained on another rendering of ``task`` than today's (:func:`trakdis.envs.render_version`):
     it would read images unlike its training images. Files written before the version was recorded
     count as version 2 (the 35 mm picker markers, before the unpinned fold's wider camera)."""
-    from trakdis.envs import render_version
-
     found, current = data.get("render_version", 2), render_version(task)
     if found != current:
         raise CheckpointError(f"{source}: its image network was trained on {task} images of rendering version "
@@ -429,9 +426,10 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         actor.load_state_dict(data["actor"])
     except RuntimeError as err:
         raise CheckpointError(f"{path}: actor weights do not match its dt_config: {err}") from err
+    encoder = None
     if data.get("encoder"):
         check_render_version(data["encoder"], data["task"], f"{path} (its encoder)")
-    encoder = encoder_from_dict(data["encoder"]) if data.get("encoder") else None
+        encoder = encoder_from_dict(data["encoder"])
     if data["kind"] == "student" and encoder is None:
         raise CheckpointError(f"{path}: a student policy file must contain its encoder")
     return PolicyHandle(
@@ -470,8 +468,6 @@ def save_image_policy(path: str | Path, *, kind: str, task: str, horizon: int, t
     (``bc_config`` or ``dt_config``), plus the acting return-to-go of a DT."""
     if kind not in IMAGE_POLICY_KINDS:
         raise ValueError(f"save_image_policy: kind must be one of {IMAGE_POLICY_KINDS}, got {kind!r}")
-    from trakdis.envs import render_version
-
     config_key = "bc_config" if kind == "bc_image" else "dt_config"
     cfg = head_config.to_dict() if hasattr(head_config, "to_dict") else dict(head_config)
     return save_checkpoint(path, {
