@@ -111,7 +111,8 @@ def main(argv=None) -> dict:
                             distill=cfg.distill, proprio_dims=proprio_dims, state_noise=cfg.state_noise, seed=cfg.seed,
                             early_windows=cfg.early_windows, relabel_return_to_go=not cfg.distill or cfg.expert_data
                             or cfg.return_to_go == "hindsight")
-    state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None}, step_key="updates",
+    state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None, "round_evals": {}},
+                     step_key="updates",
                      updater=updater, buffer=buffer)
     if state.resuming:
         state.load()
@@ -129,8 +130,8 @@ def main(argv=None) -> dict:
 
     evals = cfg.eval_protocol(task, horizon, seed=cfg.seed, log_returns=False)
 
-    def evaluate(tag) -> float | None:  # the student, on the same eval configurations every time
-        return evals.run(run, student_handle, eval_env, step=state["updates"], tag=tag, keep_mode=student,
+    def evaluate(tag, prefix="eval") -> float | None:  # the student, on the same eval configurations every time
+        return evals.run(run, student_handle, eval_env, step=state["updates"], tag=tag, prefix=prefix, keep_mode=student,
                          state_error_cm=task_spec(task).state_error_cm).summary()["mean"] if cfg.eval_episodes else None
 
     eval_env = cfg.make_env(student_handle)
@@ -176,20 +177,29 @@ def main(argv=None) -> dict:
             if select_env is not None and r % cfg.select_every == 0:
                 selection.consider(r)
             if cfg.eval_every and r % cfg.eval_every == 0:
-                evaluate(f"student after round {r}")
+                state["round_evals"][r] = evaluate(f"student after round {r}")
 
         if not train_rounds(run, updater, lambda: buffer.sample(cfg.batch_size).to(cfg.device), state=state,
                             rounds=cfg.rounds, updates_per_round=cfg.updates_per_round, roll_out=roll_out, model=student,
                             loss_key="train/loss_distill" if cfg.distill else "train/loss_nll", eval_every=1,
                             evaluate=after_round):
             return dict(state)
+        # The curve (eval/) ends with the last round's weights; a kept earlier snapshot is the final score
+        # (eval_kept/ at the same step), its evaluation reused when the curve already has it.
+        # --rounds 0 (the weight copy alone): the policy did not change, its evaluation stands.
+        final = evaluate("student after distillation") if cfg.rounds > 0 else state["initial_eval"]
         if select_env is not None:
             selection.consider(cfg.rounds)
             best = selection.restore()
             run.print(f"selection: the student after round {best} is kept (train-split scores by round: " + ", ".join(
                 f"{r} {v:.3f}" for r, v in selection.means().items()) + ")")
-        # --rounds 0 (the weight copy alone): the policy did not change, its evaluation stands
-        final = evaluate("student after distillation") if cfg.rounds > 0 else state["initial_eval"]
+            if best != cfg.rounds and cfg.eval_episodes:
+                final = state["initial_eval"] if best == 0 else state["round_evals"].get(best)
+                if final is None:
+                    final = evaluate(f"the kept student (round {best})", prefix="eval_kept")
+                else:
+                    run.log(state["updates"], {"eval_kept/normalized_performance": final})
+                    run.print(f"the kept student (round {best}): its evaluation on the curve, {final:.3f}")
     state["final_eval"] = final
     student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,

@@ -247,6 +247,7 @@ def test_table1_help_and_quick_preset(capsys):
     cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--seeds", "2"], presets=bench.PRESETS)
     assert cfg.trials == 20 and cfg.seeds == 2 and "--offline-updates" not in cfg.teacher_args  # the teacher as usual
     assert cfg.noise_levels == ()  # no robustness study unless asked for
+    assert "--select-episodes 0" in cfg.student_args  # every arm keeps its last round: no 10-episode selection
     cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--noise-levels", "0", "1e-3"], presets=bench.PRESETS)
     assert cfg.noise_levels == (0.0, 1e-3)
     for bad in (["--noise-levels", "1e-3", "1e-2"], ["--noise-levels", "0", "-1"], ["--train-noise", "nan"]):

@@ -188,7 +188,7 @@ def test_distill_files_and_resume(workdir, student):
     frame = read_log(student)
     assert frame["train/loss_distill"].notna().sum() == 2
     assert frame["eval_teacher/normalized_performance"].notna().sum() == 1
-    assert frame["eval/normalized_performance"].notna().sum() == 3  # before, after round 1, at the end
+    assert frame["eval/normalized_performance"].notna().sum() == 3  # before, after rounds 1 and 2 (the curve)
     # early stopping: the copy and the students after rounds 1 and 2 played 2 train-split episodes each
     assert frame["selection/normalized_performance"].notna().sum() == 3
     saved = load_checkpoint(student / "policy.pt")
@@ -204,6 +204,25 @@ def test_distill_files_and_resume(workdir, student):
     assert a["step"].tolist() == b["step"].tolist()
     resumed = load_checkpoint(workdir / "runs" / "distill" / "student2" / "policy.pt")
     assert list(resumed["selection_scores"]) == [0, 1, 2]  # round 1's score came back from the checkpoint
+
+
+def test_distill_curve_ends_with_the_last_round(workdir, teacher, encoder):
+    """The curve (eval/) ends with the last round's weights; the kept snapshot's score (here the copy's:
+    no later snapshot can beat it by 1e9 standard errors) is logged as eval_kept/ at the same step, reused
+    from the curve's first point, and the saved policy is the copy."""
+    out = run_recipe(workdir, "distill", *distill_args("kept", "--select-margin", "1e9", "--no-eval-teacher",
+                                                        "--eval-every", 0))
+    frame = read_log(workdir / "runs" / "distill" / "kept")
+    curve = frame.dropna(subset=["eval/normalized_performance"])
+    assert curve["step"].tolist() == [0, 4]  # the copy, then the last round (2 rounds x 2 updates)
+    kept = frame.dropna(subset=["eval_kept/normalized_performance"])
+    assert kept["step"].tolist() == [4]
+    assert kept["eval_kept/normalized_performance"].item() == curve["eval/normalized_performance"].iloc[0]
+    assert "the kept student (round 0)" in out.stdout
+    saved = load_checkpoint(workdir / "runs" / "distill" / "kept" / "policy.pt")
+    copy = load_checkpoint(workdir / "runs" / "online_dt" / "teacher" / "policy.pt")
+    assert saved["selected_round"] == 0
+    assert all(torch.equal(saved["actor"][k], v) for k, v in copy["actor"].items())  # the weight copy, unchanged
 
 
 def test_distill_ablations(workdir, teacher, encoder):
