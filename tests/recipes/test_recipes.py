@@ -1,6 +1,7 @@
 """Every recipe runs end to end as a subprocess with a tiny configuration and leaves its files;
 killed or stopped runs resume from their checkpoint with nothing lost or duplicated."""
 import json
+import os
 import re
 
 import cv2
@@ -223,6 +224,28 @@ def test_distill_curve_ends_with_the_last_round(workdir, teacher, encoder):
     copy = load_checkpoint(workdir / "runs" / "online_dt" / "teacher" / "policy.pt")
     assert saved["selected_round"] == 0
     assert all(torch.equal(saved["actor"][k], v) for k, v in copy["actor"].items())  # the weight copy, unchanged
+
+
+def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monkeypatch):
+    """A kept snapshot that is neither the copy nor on the curve (round 1 of 2, no evaluation between rounds) is
+    evaluated afresh as eval_kept/ at the last step, after the curve's last point (round 2's weights); its score is the
+    run's final one. In process, the selection's scores forced: round 1 beats the copy, round 2 does not beat round 1."""
+    distill = load_recipe("distill")
+
+    class ForcedSelection(distill.SnapshotSelection):
+        def __init__(self, module, score, state, **kwargs):
+            super().__init__(module, lambda step: [1.0, 1.0] if step == 1 else [0.0, 0.0], state, **kwargs)
+
+    monkeypatch.setattr(distill, "SnapshotSelection", ForcedSelection)
+    monkeypatch.chdir(workdir)
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    state = distill.main([str(a) for a in distill_args("middle", "--no-eval-teacher", "--eval-every", 0,
+                                                         "--episodes-per-round", 0, "--no-progress")])
+    frame = read_log(workdir / "runs" / "distill" / "middle")
+    assert frame.dropna(subset=["eval/normalized_performance"])["step"].tolist() == [0, 4]
+    kept = frame.dropna(subset=["eval_kept/normalized_performance"])
+    assert kept["step"].tolist() == [4] and kept["eval_kept/normalized_performance"].item() == state["final_eval"]
+    assert load_checkpoint(workdir / "runs" / "distill" / "middle" / "policy.pt")["selected_round"] == 1
 
 
 def test_distill_ablations(workdir, teacher, encoder):
