@@ -112,8 +112,7 @@ def main(argv=None) -> dict:
                             early_windows=cfg.early_windows, relabel_return_to_go=not cfg.distill or cfg.expert_data
                             or cfg.return_to_go == "hindsight")
     state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None, "round_evals": {}},
-                     step_key="updates",
-                     updater=updater, buffer=buffer)
+                     step_key="updates", updater=updater, buffer=buffer)
     if state.resuming:
         state.load()
     elif not cfg.distill or cfg.expert_data:
