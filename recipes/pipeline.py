@@ -10,7 +10,8 @@
    and those the weight-copied student visits (``--teacher``, rounds of its rollouts); three trained
    side by side, the one the weight copy folds best with kept (``--members 3 --select-episodes 30``).
 3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data; on the
-   diagonal folds the snapshot kept by its train-split selection episodes, on ClothFold the last round's).
+   diagonal folds the snapshot kept by its train-split selection episodes, on ClothFold the last round's, with
+   the expert's actions beside the teacher's labels).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
    25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a

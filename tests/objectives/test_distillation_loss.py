@@ -212,3 +212,34 @@ def test_step_context_labels_each_step_from_its_own_tokens(actors):
     assert not torch.allclose(t_window[m], labels[m])
     with pytest.raises(ValueError, match="teacher_context"):
         DistillationLoss(student, teacher, teacher_context="history")
+
+
+def test_expert_term_is_student_nll_of_the_windows_own_actions(actors):
+    student, teacher = actors
+    td = window()
+    td["action"] = td["action"].clamp(-0.9, 0.9)
+    base = DistillationLoss(student, teacher)(td.clone())
+    out = DistillationLoss(student, teacher, expert_coef=0.5)(td.clone())
+    assert set(out.keys()) == {"loss_distill", "loss_expert", "teacher_student_mse"}
+    torch.testing.assert_close(out["loss_distill"], base["loss_distill"])  # the teacher's term is unchanged
+    with torch.no_grad():
+        expected = -student.get_dist(td.clone()).log_prob(td["action"])[td["mask"]].mean()
+    torch.testing.assert_close(out["loss_expert"], 0.5 * expected)
+    # its targets are the "action" key (set_keys), which the student also reads as its action tokens
+    loss = DistillationLoss(student, teacher, expert_coef=1.0)
+    assert "action" in loss.in_keys
+    td["demo"] = -td["action"]
+    loss.set_keys(action="demo")
+    with torch.no_grad():
+        flipped = -student.get_dist(td.clone()).log_prob(td["demo"])[td["mask"]].mean()
+    torch.testing.assert_close(loss(td.clone())["loss_expert"], flipped)
+    # gradients reach the student alone, through both terms
+    student.zero_grad()
+    total = sum(v for k, v in loss(td.clone()).items() if k.startswith("loss_"))
+    total.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in student.parameters())
+    assert all(p.grad is None for p in teacher.parameters())
+    with pytest.raises(ValueError, match="expert_coef"):
+        DistillationLoss(student, teacher, expert_coef=-1.0)
+    with pytest.raises(ValueError, match="expert_coef"):
+        DistillationLoss(student, teacher, expert_coef=float("nan"))

@@ -195,6 +195,7 @@ def test_distill_files_and_resume(workdir, student):
     saved = load_checkpoint(student / "policy.pt")
     assert list(saved["selection_scores"]) == [0, 1, 2] and saved["selected_round"] in (0, 1, 2)
     assert saved["select_episodes"] == 2  # given: the task's default (SELECT_EPISODES) does not apply
+    assert saved["expert_coef"] == 0.0  # rollouts in the data: the task's default (EXPERT_COEF) does not apply
     handle = load_policy(student)
     assert handle.kind == "student" and handle.observation_key == "state_estimate" and handle.encoder is not None
     assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7)  # the teacher's architecture
@@ -245,7 +246,10 @@ def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monke
     assert frame.dropna(subset=["eval/normalized_performance"])["step"].tolist() == [0, 4]
     kept = frame.dropna(subset=["eval_kept/normalized_performance"])
     assert kept["step"].tolist() == [4] and kept["eval_kept/normalized_performance"].item() == state["final_eval"]
-    assert load_checkpoint(workdir / "runs" / "distill" / "middle" / "policy.pt")["selected_round"] == 1
+    saved = load_checkpoint(workdir / "runs" / "distill" / "middle" / "policy.pt")
+    assert saved["selected_round"] == 1
+    assert saved["expert_coef"] == 1.0  # the expert data alone: ClothFold's default (EXPERT_COEF)
+    assert frame["train/loss_expert"].notna().sum() == 2
 
 
 def test_distill_ablations(workdir, teacher, encoder):
@@ -273,10 +277,12 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     # the expert dataset alone, with the teacher's labels; the pickers fused with the commands
     out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
                                                         "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", *DATA,
-                                                        "--select-episodes", "None"))  # the task's default
+                                                        "--select-episodes", "None",  # the task's default
+                                                        "--expert-coef", 0.5))  # the expert's actions beside the teacher's
     assert "--expert-data" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "offline")
     assert frame["train/loss_distill"].notna().sum() == 2 and not any(c.startswith("rollout/") for c in frame.columns)
+    assert frame["train/loss_expert"].notna().sum() == 2
     assert frame["eval/normalized_performance"].notna().sum() == 2  # acted with PickerOdometry in its env
     handle = load_policy(workdir / "runs" / "distill" / "offline")
     saved = load_checkpoint(workdir / "runs" / "distill" / "offline" / "policy.pt")
@@ -383,6 +389,9 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),
     ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
     ("distill", ["--picker-odometry", "--data.action-labels", "expert"], r"integrates the executed actions"),
+    ("distill", ["--expert-coef", "1", "--no-distill"], r"--expert-coef 1\.0: the expert's actions exist on the expert data"),
+    ("distill", ["--expert-coef", "1", "--episodes-per-round", "2"], r"--expert-coef 1\.0"),
+    ("distill", ["--expert-coef", "-1"], r"--expert-coef -1\.0: must be >= 0"),
     ("train_encoder", ["--members", "0"], r"--members 0: need at least 1 encoder"),
     ("train_encoder", ["--select-episodes", "3", "--teacher", "t.pt"], r"--select-episodes 3: needs --members >= 2"),
     ("train_encoder", ["--select-episodes", "3", "--members", "2"], r"and --teacher"),

@@ -46,6 +46,10 @@ class DistillationLoss(LossModule):
       which DT training samples. With student-driven rollouts (DAgger) the window's actions are
       the student's, and a teacher conditioned on them labels a history it would not have
       produced; ``"step"`` removes that dependence (docs/recipes/distill.md).
+    * ``loss_expert`` (only if ``expert_coef > 0``) = ``expert_coef`` x the student's masked mean NLL of the
+      window's own ``"action"`` (clamped like the teacher's): on the expert's episodes, the demonstrated
+      action beside the teacher's, as knowledge distillation mixes the hard labels with the teacher's
+      (Hinton et al., 2015). Only meaningful where the window's actions are the expert's.
     * metric ``teacher_student_mse``: masked mean squared difference of the deterministic actions.
 
     The teacher is evaluated in eval mode (no dropout) whatever its ``training`` flag, so its
@@ -61,6 +65,7 @@ class DistillationLoss(LossModule):
         loss_function: ``"nll"`` or ``"mse"`` (see above).
         action_eps: clamp of the teacher's actions away from +-1.
         teacher_context: ``"window"`` or ``"step"`` (see above).
+        expert_coef: weight of ``loss_expert`` (0 disables it; see above).
     """
 
     @dataclass
@@ -69,9 +74,11 @@ class DistillationLoss(LossModule):
 
         Attributes:
             mask: bool ``[B, K]`` padding mask (True = real step). Defaults to ``"mask"``.
+            action: the window's actions, the targets of ``loss_expert``. Defaults to ``"action"``.
         """
 
         mask: NestedKey = "mask"
+        action: NestedKey = "action"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -89,6 +96,7 @@ class DistillationLoss(LossModule):
         loss_function: str = "nll",
         action_eps: float = 1e-6,
         teacher_context: str = "window",
+        expert_coef: float = 0.0,
     ) -> None:
         super().__init__()
         if teacher_context not in _TEACHER_CONTEXTS:
@@ -99,6 +107,8 @@ class DistillationLoss(LossModule):
             raise ValueError(f"kl_direction={kl_direction!r}; expected one of {_KL_DIRECTIONS}")
         if kl_coef < 0:
             raise ValueError(f"kl_coef={kl_coef} must be >= 0")
+        if not expert_coef >= 0:  # also NaN
+            raise ValueError(f"expert_coef={expert_coef} must be >= 0")
         if student_actor is teacher_actor:
             raise ValueError("student_actor and teacher_actor must be distinct modules (copy the weights instead)")
         self.convert_to_functional(student_actor, "student_network", create_target_params=False)
@@ -112,6 +122,7 @@ class DistillationLoss(LossModule):
         self.loss_function = loss_function
         self.action_eps = float(action_eps)
         self.teacher_context = teacher_context
+        self.expert_coef = float(expert_coef)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -119,11 +130,14 @@ class DistillationLoss(LossModule):
     @property
     def in_keys(self):
         keys = set(self.student_network.in_keys) | set(self.teacher_network.in_keys) | {self.tensor_keys.mask}
+        if self.expert_coef > 0:
+            keys.add(self.tensor_keys.action)
         return sorted(keys, key=str)
 
     @property
     def out_keys(self):
-        return ["loss_distill"] + (["loss_kl"] if self.kl_coef > 0 else []) + ["teacher_student_mse"]
+        return (["loss_distill"] + (["loss_kl"] if self.kl_coef > 0 else []) + (["loss_expert"] if self.expert_coef > 0 else [])
+                + ["teacher_student_mse"])
 
     def teacher_dist(self, tensordict: TensorDictBase):
         """The teacher's per-step distribution, always computed in eval mode (no dropout).
@@ -174,6 +188,9 @@ class DistillationLoss(LossModule):
             else:
                 kl = torch.distributions.kl_divergence(s_base, t_base).sum(-1)
             out["loss_kl"] = self.kl_coef * masked_mean(kl, mask)
+        if self.expert_coef > 0:
+            target = clamp_action(tensordict.get(self.tensor_keys.action), self.action_eps)
+            out["loss_expert"] = self.expert_coef * masked_mean(-s_dist.log_prob(target), mask)
         with torch.no_grad():
             out["teacher_student_mse"] = masked_mean((s_action.detach() - t_action).pow(2).mean(-1), mask)
         return TensorDict(out, batch_size=[])
