@@ -223,9 +223,9 @@ def main(argv=None) -> dict:
     state["final_eval"] = final
     student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
-                               "state_noise": cfg.state_noise, "expert_coef": expert_coef, "proprio_dims": list(proprio_dims),
-                               "picker_odometry": odometry, "select_episodes": select_episodes,
-                               "selected_round": selection.record["best"],
+                               "state_noise": cfg.state_noise, "expert_coef": expert_coef,
+                               "proprio_dims": list(proprio_dims), "picker_odometry": odometry,
+                               "select_episodes": select_episodes, "selected_round": selection.record["best"],
                                "selection_scores": selection.means()})
     state.finish()
     scores = [f"{k} {'not evaluated' if state[v] is None else format(state[v], '.3f')}"

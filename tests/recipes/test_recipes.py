@@ -278,7 +278,7 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
                                                         "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", *DATA,
                                                         "--select-episodes", "None",  # the task's default
-                                                        "--expert-coef", 0.5))  # the expert's actions beside the teacher's
+                                                        "--expert-coef", 0.5))  # the expert's actions as well
     assert "--expert-data" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "offline")
     assert frame["train/loss_distill"].notna().sum() == 2 and not any(c.startswith("rollout/") for c in frame.columns)
@@ -389,7 +389,7 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),
     ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
     ("distill", ["--picker-odometry", "--data.action-labels", "expert"], r"integrates the executed actions"),
-    ("distill", ["--expert-coef", "1", "--no-distill"], r"--expert-coef 1\.0: the expert's actions exist on the expert data"),
+    ("distill", ["--expert-coef", "1", "--no-distill"], r"--expert-coef 1\.0: the expert's actions exist on the expert"),
     ("distill", ["--expert-coef", "1", "--episodes-per-round", "2"], r"--expert-coef 1\.0"),
     ("distill", ["--expert-coef", "-1"], r"--expert-coef -1\.0: must be >= 0"),
     ("train_encoder", ["--members", "0"], r"--members 0: need at least 1 encoder"),

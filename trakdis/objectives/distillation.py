@@ -136,8 +136,8 @@ class DistillationLoss(LossModule):
 
     @property
     def out_keys(self):
-        return (["loss_distill"] + (["loss_kl"] if self.kl_coef > 0 else []) + (["loss_expert"] if self.expert_coef > 0 else [])
-                + ["teacher_student_mse"])
+        return (["loss_distill"] + (["loss_kl"] if self.kl_coef > 0 else [])
+                + (["loss_expert"] if self.expert_coef > 0 else []) + ["teacher_student_mse"])
 
     def teacher_dist(self, tensordict: TensorDictBase):
         """The teacher's per-step distribution, always computed in eval mode (no dropout).
