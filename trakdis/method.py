@@ -23,7 +23,7 @@ one whose weight copy folds best on 30 train-split episodes kept (which draw the
 effect on the student, docs/recipes/train_encoder.md)"""
 STUDENT_ARGS = ""
 """recipes/distill.py: its own defaults (weight copy, distillation on the expert data, the per-task snapshot
-selection and expert-action term)"""
+selection, expert-action term and picker odometry)"""
 
 
 def _flags(*, parallel: bool = False, mask_unseen_pickers: bool = False) -> list[str]:

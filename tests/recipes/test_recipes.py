@@ -196,7 +196,9 @@ def test_distill_files_and_resume(workdir, student):
     assert list(saved["selection_scores"]) == [0, 1, 2] and saved["selected_round"] in (0, 1, 2)
     assert saved["select_episodes"] == 2  # given: the task's default (SELECT_EPISODES) does not apply
     assert saved["expert_coef"] == 0.0  # rollouts in the data: the task's default (EXPERT_COEF) does not apply
+    assert saved["picker_odometry"] is True  # ClothFold's default (PICKER_ODOMETRY)
     handle = load_policy(student)
+    assert handle.picker_odometry and any(type(t).__name__ == "PickerOdometry" for t in handle.make_env().transform)
     assert handle.kind == "student" and handle.observation_key == "state_estimate" and handle.encoder is not None
     assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7)  # the teacher's architecture
     run_recipe(workdir, "distill", *distill_args("student2", "--stop-after", 1))
@@ -241,7 +243,8 @@ def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monke
     monkeypatch.chdir(workdir)
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
     state = distill.main([str(a) for a in distill_args("middle", "--no-eval-teacher", "--eval-every", 0,
-                                                         "--episodes-per-round", 0, "--no-progress")])
+                                                         "--episodes-per-round", 0, "--no-progress",
+                                                         "--picker-odometry", "off")])
     frame = read_log(workdir / "runs" / "distill" / "middle")
     assert frame.dropna(subset=["eval/normalized_performance"])["step"].tolist() == [0, 4]
     kept = frame.dropna(subset=["eval_kept/normalized_performance"])
@@ -250,6 +253,7 @@ def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monke
     assert saved["selected_round"] == 1
     assert saved["expert_coef"] == 1.0  # the expert data alone: ClothFold's default (EXPERT_COEF)
     assert frame["train/loss_expert"].notna().sum() == 2
+    assert saved["picker_odometry"] is False  # --picker-odometry off: ClothFold's default (on) does not apply
 
 
 def test_distill_ablations(workdir, teacher, encoder):
@@ -276,7 +280,7 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     assert rounds["rollout/student_normalized_performance"].notna().tolist() == [False, True]
     # the expert dataset alone, with the teacher's labels; the pickers fused with the commands
     out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
-                                                        "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", *DATA,
+                                                        "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", "on", *DATA,
                                                         "--select-episodes", "None",  # the task's default
                                                         "--expert-coef", 0.5))  # the expert's actions as well
     assert "--expert-data" in out.stdout
@@ -388,7 +392,7 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("online_dt", ["--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),
     ("distill", ["--episodes-per-round", "0", "--no-expert-data"], r"--episodes-per-round 0: distillation needs"),
-    ("distill", ["--picker-odometry", "--data.action-labels", "expert"], r"integrates the executed actions"),
+    ("distill", ["--picker-odometry", "on", "--data.action-labels", "expert"], r"integrates the executed actions"),
     ("distill", ["--expert-coef", "1", "--no-distill"], r"--expert-coef 1\.0: the expert's actions exist on the expert"),
     ("distill", ["--expert-coef", "1", "--episodes-per-round", "2"], r"--expert-coef 1\.0"),
     ("distill", ["--expert-coef", "-1"], r"--expert-coef -1\.0: must be >= 0"),
