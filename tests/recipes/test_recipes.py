@@ -280,7 +280,8 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     assert rounds["rollout/student_normalized_performance"].notna().tolist() == [False, True]
     # the expert dataset alone, with the teacher's labels; the pickers fused with the commands
     out = run_recipe(workdir, "distill", *distill_args("offline", "--expert-data", "--episodes-per-round", 0,
-                                                        "--no-eval-teacher", "--eval-every", 0, "--picker-odometry", "on", *DATA,
+                                                        "--no-eval-teacher", "--eval-every", 0, *DATA,
+                                                        "--picker-odometry", "on",
                                                         "--select-episodes", "None",  # the task's default
                                                         "--expert-coef", 0.5))  # the expert's actions as well
     assert "--expert-data" in out.stdout
@@ -359,6 +360,23 @@ def test_paper_preset_config():
     module = load_recipe("distill")
     cfg = parse_config(module.DistillConfig, ["--preset", "paper"], presets=module.PRESETS)
     assert cfg.rounds == 60 and cfg.optimizer == "lamb"
+
+
+def test_distill_picker_odometry_per_task():
+    """--picker-odometry auto: on where PICKER_ODOMETRY says so and the actions are the executed ones; on / off win;
+    never with --proprio-pickers."""
+    from trakdis.utils.config import parse_config
+
+    module = load_recipe("distill")
+
+    def odometry(*argv: str) -> dict:
+        cfg = parse_config(module.DistillConfig, list(argv))
+        return {task: cfg.odometry_for(task) for task in module.PICKER_ODOMETRY}
+
+    assert odometry() == module.PICKER_ODOMETRY and odometry()["ClothFold"] is True
+    assert not any(odometry("--data.action-labels", "expert").values())  # auto: no executed actions to integrate
+    assert all(odometry("--picker-odometry", "on").values()) and not any(odometry("--picker-odometry", "off").values())
+    assert not any(odometry("--picker-odometry", "on", "--proprio-pickers").values())
 
 
 def test_model_section_is_the_dt_config_and_old_run_configs_load():
