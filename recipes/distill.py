@@ -36,8 +36,8 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     state_noise: float = 0.0  # std of Gaussian noise on the estimated state of every training window (robustness)
     proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
     picker_odometry: Literal["auto", "on", "off"] = "auto"
-    """the encoder's picker estimates fused with the student's own commands (no proprioception); auto: on for the tasks
-    where it was measured to help (PICKER_ODOMETRY: ClothFold), if the data's actions are the executed ones"""
+    """the encoder's picker estimates fused with the student's own commands (no proprioception); auto: per task, as
+    measured in docs/recipes/distill.md (PICKER_ODOMETRY: ClothFold on), if the data's actions are the executed ones"""
     act: Literal["student", "teacher", "mixed"] = "teacher"  # who acts in the rollouts (student: DAgger; mixed: decaying)
     teacher_context: Literal["window", "step"] = "window"  # what the teacher reads to label a step: window or step alone
     expert_data: bool = True  # distil on the expert dataset's episodes (--data.*): images through the encoder
