@@ -198,13 +198,15 @@ class Stages:
     def _poll(self, stop: threading.Event, seconds: float) -> None:  # the queue's thread
         # PR_SET_PDEATHSIG follows the thread that started a process: this one ends only once the queue
         # is drained, or on a failure, which stops the queue's other stages anyway.
+        # The failure is recorded under the same hold of the lock as the pump() that saw it: released in
+        # between, the main thread's pump() could find the failed stage gone and start the next one.
         while not stop.wait(seconds):
-            try:
-                self.pump()
-            except BaseException as err:  # noqa: BLE001 - handed to the main thread's next pump()
-                with self._lock:
+            with self._lock:
+                try:
+                    self.pump()
+                except BaseException as err:  # noqa: BLE001 - handed to the main thread's next pump()
                     self._failure = err
-                return
+                    return
 
     def drain(self, poll_seconds: float = 0.5) -> None:
         """Wait until every submitted stage has run."""
