@@ -14,11 +14,11 @@
    the expert's actions beside the teacher's labels).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
-   25/50/75th percentiles and the ratio to the teacher. The expert's episodes run in a
-   low-priority background process from the end of stage 1 on, on the core that the encoder's and
-   the student's training leave idle (``--no-background-expert``: after them); the teacher's and
-   the student's, the encoder stage's rollouts and selection episodes and the student stage's selection
-   episodes, on 2 worker processes (``--no-parallel``: in turn). The numbers are the same.
+   25/50/75th percentiles and the ratio to the teacher. The expert's episodes, then the teacher's, run
+   in a low-priority background process from the end of stage 1 on, on the core that the encoder's
+   and the student's training leave idle (``--no-background-evaluations``: after them); the student's,
+   the encoder stage's rollouts and selection episodes and the student stage's selection episodes, on
+   2 worker processes (``--no-parallel``: in turn). The numbers are the same.
    The stages evaluate nothing themselves (``--eval-episodes 0``; a stage's own ``--eval-episodes`` in its
    ``--*-args`` wins): the table has the evaluations. Each stage's default options: ``trakdis.method``.
 
@@ -66,8 +66,9 @@ class PipelineConfig(RunConfig):
     """extra options for recipes/distill.py"""
     mask_unseen_pickers: bool = False
     """pass --mask-unseen-pickers to the teacher and encoder stages (pickers out of the camera view masked)"""
-    background_expert: bool = True
-    """evaluate the scripted expert in a low-priority background process while the encoder and student train"""
+    background_evaluations: bool = True
+    """evaluate the scripted expert, then the teacher, in a low-priority background process while the encoder and
+    the student train (--no-background-evaluations: after them, on 2 worker processes with --parallel)"""
     parallel: bool = True
     """evaluate the teacher and the student, and play the encoder's and the student's rollouts and selection
     episodes, on 2 worker processes (--no-parallel: in turn; the same numbers)"""
@@ -79,23 +80,29 @@ def main(argv=None) -> pd.DataFrame:
     stages = Stages(run, RECIPES)
     mask = cfg.mask_unseen_pickers
     parallel = ["--parallel"] if cfg.parallel else []  # the evaluations
-    teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt",
-                         teacher_stage_args(cfg.task, cfg.teacher_args, mask_unseen_pickers=mask))
-    horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
-    evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
-    expert = stages.run("evaluate", f"{name}-eval-expert", "summary.csv", ["--policy", "expert", *evaluate],
-                        background=cfg.background_expert)
-    with stages.cleanup(expert):  # an error before it finished: the expert's background stage is stopped
+    directories, policies = {}, {"expert": "expert"}
+    with stages.queued():  # submitted evaluations run in the background, in turn, beside the foreground stages
+        teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt",
+                             teacher_stage_args(cfg.task, cfg.teacher_args, mask_unseen_pickers=mask))
+        policies["teacher"] = str(teacher)
+        horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
+        evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
+        if cfg.background_evaluations:  # on the core that the encoder's and the student's training leave idle
+            for label in ("expert", "teacher"):
+                directories[label] = stages.submit("evaluate", f"{name}-eval-{label}", "summary.csv",
+                                                   ["--policy", policies[label], *evaluate])
         encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
                              encoder_stage_args(cfg.task, teacher, cfg.encoder_args, parallel=cfg.parallel,
                                                 mask_unseen_pickers=mask))
         student = stages.run("distill", f"{name}-student", "policy.pt",
                              student_stage_args(teacher, encoder, cfg.student_args, parallel=cfg.parallel))
-        directories = {"expert": stages.wait(expert)}
-    for label, policy in (("teacher", str(teacher)), ("student", str(student))):
-        directories[label] = stages.run("evaluate", f"{name}-eval-{label}", "summary.csv",
-                                        ["--policy", policy, *evaluate, *parallel])
-    rows = [{**pd.read_csv(d / "summary.csv").iloc[0].to_dict(), "policy": label} for label, d in directories.items()]
+        policies["student"] = str(student)
+        for label, policy in policies.items():  # what is not evaluated yet, in the foreground
+            if label not in directories:
+                directories[label] = stages.run("evaluate", f"{name}-eval-{label}", "summary.csv",
+                                                ["--policy", policy, *evaluate, *parallel])
+    rows = [{**pd.read_csv(directories[label] / "summary.csv").iloc[0].to_dict(), "policy": label}
+            for label in policies]  # expert, teacher, student
     teacher_mean = rows[1]["mean"]
     for row in rows:
         row["x_teacher"] = row["mean"] / teacher_mean if teacher_mean else float("nan")

@@ -432,8 +432,8 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     """recipes/pipeline.py: teacher, encoder, student and the three evaluations, then one table;
     a second call finds every stage's output and only rebuilds the table. With --mask-unseen-pickers
     (the default-off runs are the fixtures'): the teacher's policy file carries the fill, the encoder
-    learns masked labels, the student rounds and the student act with it. The expert's evaluation
-    runs in the background meanwhile."""
+    learns masked labels, the student rounds and the student act with it. The expert's evaluation, then
+    the teacher's, run in the background meanwhile."""
     # --no-parallel: the same numbers (test_online_dt_serial_envs...), without starting worker processes
     def without_eval(args):  # the pipeline's own --eval-episodes 0 stays in force
         i = args.index("--eval-episodes")
@@ -449,6 +449,7 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
             f"--student-args={student}", "--threads", 1, "--mask-unseen-pickers", "--no-parallel"]
     out = run_recipe(workdir, "pipeline", *args, timeout=400)
     assert "pipe-eval-expert started in the background" in out.stdout
+    assert "pipe-eval-teacher started in the background" in out.stdout
     assert "of the training images' picker positions are out of view" in out.stdout
     for run_dir in ("online_dt/pipe-teacher", "distill/pipe-student"):
         assert load_policy(workdir / "runs" / run_dir).normalizer.fill is not None, run_dir
