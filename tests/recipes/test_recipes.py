@@ -3,6 +3,7 @@ killed or stopped runs resume from their checkpoint with nothing lost or duplica
 import json
 import os
 import re
+import shutil
 
 import cv2
 import pandas as pd
@@ -467,6 +468,13 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     assert "student before not evaluated, after not evaluated" in out.stdout
     again = run_recipe(workdir, "pipeline", "--resume", "--name", "pipe")
     assert again.stdout.count("skipped") == 6
+    # the evaluations again, in this process after the stages: the background's numbers
+    for label in ("expert", "teacher"):
+        shutil.rmtree(workdir / "runs" / "evaluate" / f"pipe-eval-{label}")
+    foreground = run_recipe(workdir, "pipeline", "--resume", "--name", "pipe", "--no-background-evaluations",
+                            "--no-parallel")
+    assert "in the background" not in foreground.stdout and foreground.stdout.count("skipped") == 4
+    pd.testing.assert_frame_equal(pd.read_csv(workdir / "runs" / "pipeline" / "pipe" / "summary.csv"), table)
 
 
 def test_train_encoder_keeps_the_member_whose_weight_copy_folds_best(workdir, teacher):
