@@ -121,6 +121,17 @@ def test_submitted_stages_run_in_the_background_one_at_a_time_and_are_waited_for
         assert not stages._running
 
 
+def test_a_stage_still_queued_is_withdrawn_and_one_started_is_not(stages, tmp_path):
+    (tmp_path / "recipes" / "slow.py").write_text(RECIPE.replace("import json, sys", "import json, sys, time").replace('"toy"', '"slow"')
+                                                   .replace("    if \"--fail\"", "    time.sleep(0.5)\n    if \"--fail\""))
+    with stages.queued():
+        first = stages.submit("slow", "w1", "out.txt", [])
+        second = stages.submit("slow", "w2", "out.txt", [])
+        assert not stages.withdraw("w1") and not stages.withdraw("never-submitted")  # w1 runs already
+        assert stages.withdraw("w2") and not stages.withdraw("w2")
+    assert (first / "out.txt").exists() and not second.exists()
+
+
 def test_the_queue_starts_the_next_stage_while_a_foreground_stage_runs(stages, tmp_path):
     (tmp_path / "recipes" / "slow.py").write_text(RECIPE.replace("import json, sys", "import json, sys, time")
                                                    .replace('"toy"', '"slow"')

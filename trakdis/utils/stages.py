@@ -21,6 +21,8 @@ background beside the foreground stages, at most ``max_background`` at a time::
         teacher = stages.run("online_dt", "cf-teacher", "policy.pt", [...])
         stages.submit("evaluate", "cf-eval-teacher", "summary.csv", ["--policy", str(teacher)])
         encoder = stages.run("train_encoder", "cf-encoder", "encoder.pt", [...])   # beside the evaluation
+        if stages.withdraw("cf-eval-teacher"):   # not started yet: run it here instead
+            stages.run("evaluate", "cf-eval-teacher", "summary.csv", [..., "--parallel"])
 
 The common options (``--name``, ``--root``, ``--seed``, ``--threads``, ``--no-progress``,
 ``--logger``) come from the pipeline run's :class:`~trakdis.utils.run.RunConfig` (``seed=``: another
@@ -181,6 +183,16 @@ class Stages:
             self._queue.append((recipe, run_name, output, list(args), seed))
         self.pump()
         return Path(self.pipeline.cfg.root) / recipe / run_name
+
+    def withdraw(self, run_name: str) -> bool:
+        """Take the submitted stage ``run_name`` out of the queue if it has not started yet (the caller runs it
+        itself, e.g. in the foreground on more cores); False once it started, or if it was never submitted."""
+        with self._lock:
+            for i, queued in enumerate(self._queue):
+                if queued[1] == run_name:
+                    del self._queue[i]
+                    return True
+        return False
 
     def pump(self) -> None:
         """Collect the queued stages that finished (a failed one raises, naming its log, here or, when
