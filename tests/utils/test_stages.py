@@ -113,8 +113,9 @@ def test_submitted_stages_run_in_the_background_one_at_a_time_and_are_waited_for
 
 
 def test_a_stage_still_queued_is_withdrawn_and_one_started_is_not(stages, tmp_path):
-    (tmp_path / "recipes" / "slow.py").write_text(RECIPE.replace("import json, sys", "import json, sys, time").replace('"toy"', '"slow"')
-                                                   .replace("    if \"--fail\"", "    time.sleep(0.5)\n    if \"--fail\""))
+    (tmp_path / "recipes" / "slow.py").write_text(RECIPE.replace("import json, sys", "import json, sys, time")
+                                                   .replace('"toy"', '"slow"')
+                                                   .replace('    if "--fail"', '    time.sleep(0.5)\n    if "--fail"'))
     with stages.queued():
         first = stages.submit("slow", "w1", "out.txt", [])
         second = stages.submit("slow", "w2", "out.txt", [])
