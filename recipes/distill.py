@@ -104,7 +104,8 @@ SELECT_EPISODES = {"ClothFold": 0, "ClothFoldDiagonalPinned": 30, "ClothFoldDiag
 EXPERT_COEF = {"ClothFold": 1.0, "ClothFoldDiagonalPinned": 0.0, "ClothFoldDiagonalUnpinned": 0.0}
 # --picker-odometry auto by task (stop 44): on ClothFold the encoder misplaces the pickers by ~3 cm on the copy's
 # states, the fused ones by ~0.7, and the copy and the student rose by +0.02 each on average over 3 seeds (2 of 3 each,
-# within 1.7 standard errors); on the diagonal folds it lowered the students (stop 32).
+# within 1.7 standard errors); on the diagonal folds it lowered the students (stop 32) and raised seed 0's copies
+# on this host type (stop 45; one seed, not yet a default there).
 PICKER_ODOMETRY = {"ClothFold": True, "ClothFoldDiagonalPinned": False, "ClothFoldDiagonalUnpinned": False}
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,

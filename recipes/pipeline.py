@@ -98,10 +98,8 @@ def main(argv=None) -> pd.DataFrame:
         student = stages.run("distill", f"{name}-student", "policy.pt",
                              student_stage_args(teacher, encoder, cfg.student_args, parallel=cfg.parallel))
         policies["student"] = str(student)
-        for label, policy in policies.items():  # what is not evaluated yet, in the foreground
-            if label in directories and stages.withdraw(f"{name}-eval-{label}"):
-                del directories[label]  # still waiting for the background: here, on 2 workers with --parallel
-            if label not in directories:
+        for label, policy in policies.items():  # not in the background, or still waiting there: here, on 2 workers
+            if label not in directories or stages.withdraw(f"{name}-eval-{label}"):
                 directories[label] = stages.run("evaluate", f"{name}-eval-{label}", "summary.csv",
                                                 ["--policy", policy, *evaluate, *parallel])
     rows = [{**pd.read_csv(directories[label] / "summary.csv").iloc[0].to_dict(), "policy": label}

@@ -4,14 +4,11 @@ Each stage is an ordinary run of a recipe script, ``<root>/<recipe>/<run_name>``
 output file exists, resumed (``--resume``) when a checkpoint or a log shows it was interrupted, so
 that the pipeline itself resumes by running again. A stage runs in this process (the recipe
 imported from its file, its ``main(argv)`` called) or, with ``background=True``, as a low-priority
-subprocess on the core the foreground stages leave idle::
+subprocess on the core the foreground stages leave idle (:meth:`Stages.wait` for it)::
 
     stages = Stages(run, Path(__file__).parent)
     teacher = stages.run("online_dt", "cf-teacher", "policy.pt", ["--task", "ClothFold"])
-    job = stages.run("evaluate", "cf-eval-expert", "summary.csv", ["--policy", "expert"], background=True)
-    with stages.cleanup(job):          # an error before wait(): the background stage is terminated
-        encoder = stages.run("train_encoder", "cf-encoder", "encoder.pt", ["--teacher", str(teacher)])
-        expert = stages.wait(job)
+    encoder = stages.run("train_encoder", "cf-encoder", "encoder.pt", ["--teacher", str(teacher)])
     stages.report()                    # wall seconds per stage
 
 Stages that need nothing from the ones after them (evaluations) can be queued instead, to run in the
@@ -252,17 +249,6 @@ class Stages:
                     job.proc.wait()
                 self._running.clear()
                 self._failure = None
-
-    @staticmethod
-    @contextlib.contextmanager
-    def cleanup(job: Path | BackgroundStage) -> Iterator[None]:
-        """On leaving the block, terminate the background stage ``job`` if it still runs (an error came
-        before :meth:`wait`): nothing is left running."""
-        try:
-            yield
-        finally:
-            if isinstance(job, BackgroundStage) and job.proc.poll() is None:
-                job.proc.terminate()
 
     def report(self) -> None:
         """Print the pipeline's wall time and each stage's (nothing if every stage was skipped)."""
