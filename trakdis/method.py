@@ -22,8 +22,8 @@ ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
 one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest
 effect on the student, docs/recipes/train_encoder.md)"""
 STUDENT_ARGS = ""
-"""recipes/distill.py: its own defaults (weight copy, distillation on the expert data, the per-task snapshot
-selection, expert-action term and picker odometry)"""
+"""recipes/distill.py: its own defaults (weight copy, distillation on the expert data, picker odometry, the per-task
+snapshot selection and expert-action term)"""
 
 
 def _flags(*, parallel: bool = False, mask_unseen_pickers: bool = False) -> list[str]:

@@ -197,7 +197,7 @@ def test_distill_files_and_resume(workdir, student):
     assert list(saved["selection_scores"]) == [0, 1, 2] and saved["selected_round"] in (0, 1, 2)
     assert saved["select_episodes"] == 2  # given: the task's default (SELECT_EPISODES) does not apply
     assert saved["expert_coef"] == 0.0  # rollouts in the data: the task's default (EXPERT_COEF) does not apply
-    assert saved["picker_odometry"] is True  # ClothFold's default (PICKER_ODOMETRY)
+    assert saved["picker_odometry"] is True  # the default (--picker-odometry auto, executed actions)
     handle = load_policy(student)
     assert handle.picker_odometry and any(type(t).__name__ == "PickerOdometry" for t in handle.make_env().transform)
     assert handle.kind == "student" and handle.observation_key == "state_estimate" and handle.encoder is not None
@@ -254,7 +254,7 @@ def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monke
     assert saved["selected_round"] == 1
     assert saved["expert_coef"] == 1.0  # the expert data alone: ClothFold's default (EXPERT_COEF)
     assert frame["train/loss_expert"].notna().sum() == 2
-    assert saved["picker_odometry"] is False  # --picker-odometry off: ClothFold's default (on) does not apply
+    assert saved["picker_odometry"] is False  # --picker-odometry off: the default (on) does not apply
 
 
 def test_distill_ablations(workdir, teacher, encoder):
@@ -268,7 +268,7 @@ def test_distill_ablations(workdir, teacher, encoder):
     assert ck["distill"] is False and ck["weight_copy"] is False and ck["state_noise"] == 1e-3
     assert ck["proprio_dims"] == list(range(12, 18))  # ClothFold: two pickers after the 4 corners
     assert load_policy(workdir / "runs" / "distill" / "ablation").proprio_dims == tuple(range(12, 18))
-    assert ck["picker_odometry"] is False  # off by default, and proprioception gives the pickers anyway
+    assert ck["picker_odometry"] is False  # off with --proprio-pickers: proprioception gives the pickers
 
 
 def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
@@ -363,21 +363,21 @@ def test_paper_preset_config():
     assert cfg.rounds == 60 and cfg.optimizer == "lamb"
 
 
-def test_distill_picker_odometry_per_task():
-    """--picker-odometry auto: on where PICKER_ODOMETRY says so and the actions are the executed ones; on / off win;
-    never with --proprio-pickers."""
+def test_distill_picker_odometry_auto_on_with_executed_actions():
+    """--picker-odometry auto: on where the data's actions are the executed ones (every task); on / off win; never
+    with --proprio-pickers."""
     from trakdis.utils.config import parse_config
 
     module = load_recipe("distill")
 
-    def odometry(*argv: str) -> dict:
-        cfg = parse_config(module.DistillConfig, list(argv))
-        return {task: cfg.odometry_for(task) for task in module.PICKER_ODOMETRY}
+    def odometry(*argv: str) -> bool:
+        return parse_config(module.DistillConfig, list(argv)).odometry
 
-    assert odometry() == module.PICKER_ODOMETRY and odometry()["ClothFold"] is True
-    assert not any(odometry("--data.action-labels", "expert").values())  # auto: no executed actions to integrate
-    assert all(odometry("--picker-odometry", "on").values()) and not any(odometry("--picker-odometry", "off").values())
-    assert not any(odometry("--picker-odometry", "on", "--proprio-pickers").values())
+    assert odometry() is True and odometry("--picker-odometry", "on") is True
+    assert odometry("--data.action-labels", "expert") is False  # auto: no executed actions to integrate
+    assert odometry("--picker-odometry", "off") is False
+    assert odometry("--picker-odometry", "on", "--proprio-pickers") is False
+    assert odometry("--proprio-pickers") is False
 
 
 def test_model_section_is_the_dt_config_and_old_run_configs_load():
