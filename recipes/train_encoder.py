@@ -22,7 +22,7 @@ from trakdis.modules import EncoderEnsemble, NormalizedEncoder, StateEncoder
 from trakdis.objectives import EncoderLoss
 from trakdis.optim import make_optimizer
 from trakdis.policies import (check_unseen_picker_mask, load_teacher, save_encoder, student_rollout_steps,
-                              weight_copy_scores)
+                              weight_copy_race)
 from trakdis.transforms import OutOfViewFill
 from trakdis.training import eval_batches, train_epoch
 from trakdis.utils.run import Run, RunConfig, RunState
@@ -54,6 +54,9 @@ class TrainEncoderConfig(RunConfig):
     select_episodes: int = 0
     """with --members K > 1 and --teacher: keep the one member whose weight copy (the teacher's weights on its
     estimates) scores best on this many train-split episodes, instead of the members' mean (0: the mean)"""
+    select_chunk: int = 10
+    """--select-episodes in chunks of this many: after each, a member whose weight copy is below the leading one's
+    by more than 2 standard errors of their paired difference plays no more (racing; 0: all play every episode)"""
     test_time_flip: Literal["auto", "on", "off"] = "auto"
     """the saved encoder also reads the mirrored image, its estimate mirrored back and averaged in (auto: on for
     ClothFold, off for the diagonal folds, as measured in docs/recipes/train_encoder.md; never with --no-aug)"""
@@ -81,6 +84,8 @@ class TrainEncoderConfig(RunConfig):
     def __post_init__(self):  # checked while parsing, before the run directory exists
         if self.members < 1:
             raise ValueError(f"--members {self.members}: need at least 1 encoder")
+        if self.select_chunk < 0:
+            raise ValueError(f"--select-chunk {self.select_chunk}: must be >= 0 (0: no racing)")
         if self.select_episodes < 0 or self.select_episodes and (self.members < 2 or not self.teacher):
             raise ValueError(f"--select-episodes {self.select_episodes}: needs --members >= 2 (got {self.members}) "
                              f"and --teacher (the weight copy plays the episodes)")
@@ -195,17 +200,24 @@ def main(argv=None) -> dict:
     if cfg.select_episodes:
         # Which of several encoders trained alike the teacher's weights fold well with is not told by
         # their errors on held-out images (docs/recipes/train_encoder.md): the copy's own episodes tell.
+        # Raced (the members that fall clearly behind stop early); a run killed during the race plays it again.
+        if len(state["member_scores"]) < cfg.members:
+            def report(scores, survivors):
+                run.print(f"weight copies after {max(map(len, scores.values()))} episodes: " + ", ".join(
+                    f"member {k} {sum(v) / len(v):.3f}" + ("" if k in survivors else f" (stops at {len(v)})")
+                    for k, v in scores.items() if v))
+
+            members = [EncoderEnsemble([member], state_mirror=mirror) for member in encoder.members]
+            state["member_scores"] = {k: v.tolist() for k, v in weight_copy_race(
+                teacher, members, episodes=cfg.select_episodes, seed=cfg.seed + 9000, chunk=cfg.select_chunk,
+                parallel=cfg.parallel, on_chunk=report).items()}
+            state.save()
         scores = state["member_scores"]
-        for k, member in enumerate(encoder.members):
-            if k not in scores:
-                scores[k] = weight_copy_scores(teacher, EncoderEnsemble([member], state_mirror=mirror),
-                                               episodes=cfg.select_episodes, seed=cfg.seed + 9000,
-                                               parallel=cfg.parallel).tolist()
-                run.print(f"member {k}: weight copy {sum(scores[k]) / len(scores[k]):.3f} on {cfg.select_episodes} "
-                          f"train-split episodes")
-                state.save()
+        for k, v in scores.items():
+            run.print(f"member {k}: weight copy {sum(v) / len(v):.3f} on {len(v)} train-split episodes")
+        finished = {k: sum(v) / len(v) for k, v in scores.items() if len(v) == max(map(len, scores.values()))}
         means = {k: sum(v) / len(v) for k, v in scores.items()}
-        selected = max(means, key=means.get)
+        selected = max(finished, key=finished.get)  # among the members that played every episode
         run.log(state["epoch"], {f"select/member{k}_normalized_performance": m for k, m in means.items()})
         run.print(f"--select-episodes: member {selected} kept")
         encoder = encoder.members[selected]

@@ -1,5 +1,6 @@
 """Saved policies: policy and encoder files, the expert, and a policy's acting env."""
 import pytest
+import numpy as np
 import torch
 
 from trakdis.modules import DTConfig, NormalizedEncoder, StateEncoder, make_dt_actor
@@ -178,6 +179,39 @@ def test_weight_copy_episodes_in_worker_processes_are_the_serial_ones(tmp_path):
     assert metrics == metrics_parallel
     scores = weight_copy_scores(teacher, encoder, episodes=2, seed=3, parallel=True)  # the same episodes' scores
     assert scores.shape == (2,) and scores.mean() == pytest.approx(metrics["normalized_performance"], rel=1e-12)
+
+
+def test_weight_copy_race_plays_the_weight_copy_episodes_and_stops_the_clearly_worse(tmp_path):
+    """Each encoder's scores are the first episodes of its weight_copy_scores (all of them for those that
+    finish the race); one that falls behind the leader by more than the margin plays no more."""
+    import copy
+
+    from trakdis.evaluation import race_survivors
+    from trakdis.policies import weight_copy_race, weight_copy_scores
+
+    torch.manual_seed(3)  # a tiny teacher whose actions follow its (estimated) state
+    teacher, encoder = tiny_teacher_and_encoder(tmp_path, horizon=3, encoder_scale=0.1)
+    other = copy.deepcopy(encoder)
+    with torch.no_grad():
+        for p in other.parameters():
+            p.mul_(-3.0)  # other estimates, other actions
+    encoders = [encoder, other, copy.deepcopy(encoder)]
+    full = [weight_copy_scores(teacher, e, episodes=4, seed=3) for e in encoders]
+    reports = []
+    raced = weight_copy_race(teacher, encoders, episodes=4, seed=3, chunk=2,
+                             on_chunk=lambda scores, alive: reports.append(({k: len(v) for k, v in scores.items()},
+                                                                            alive)))
+    for k, scores in raced.items():
+        np.testing.assert_array_equal(scores, full[k][: len(scores)])
+    np.testing.assert_array_equal(full[0], full[2])  # the same weights: tied, both play on or both stop
+    alive = race_survivors({k: v[:2] for k, v in enumerate(full)})
+    assert alive == [0, 2] and [len(raced[k]) for k in range(3)] == [4, 2, 4]  # "other" far behind after 2
+    assert reports == [({0: 2, 1: 2, 2: 2}, alive), ({k: len(v) for k, v in raced.items()}, alive)]
+    in_workers = weight_copy_race(teacher, encoders, episodes=4, seed=3, chunk=2, parallel=True)  # 2 processes each
+    assert all(np.array_equal(in_workers[k], raced[k]) for k in raced)
+    # no racing: every encoder plays every episode, at once
+    plain = weight_copy_race(teacher, encoders[:2], episodes=4, seed=3, chunk=0)
+    assert [len(v) for v in plain.values()] == [4, 4] and np.array_equal(plain[1], full[1])
 
 
 def test_load_teacher_and_encoder_finds_the_latest_runs_and_checks_the_mask(tmp_path):

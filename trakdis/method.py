@@ -20,7 +20,8 @@ weights act on an encoder's estimates (docs/recipes/distill.md)"""
 ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
 """recipes/train_encoder.py: noisy-expert images added to training; three encoders trained side by side, the
 one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest
-effect on the student, docs/recipes/train_encoder.md)"""
+effect on the student, docs/recipes/train_encoder.md); raced in chunks of 10 (--select-chunk), a copy clearly
+behind stops early"""
 STUDENT_ARGS = ""
 """recipes/distill.py: its own defaults (weight copy, distillation on the expert data, picker odometry, the per-task
 snapshot selection and expert-action term)"""

@@ -21,7 +21,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -50,6 +50,7 @@ __all__ = [
     "save_image_policy",
     "weight_copied_student",
     "student_rollout_steps",
+    "weight_copy_race",
     "weight_copy_scores",
     "check_unseen_picker_mask",
     "load_teacher_and_encoder",
@@ -379,6 +380,50 @@ def weight_copy_scores(teacher: PolicyHandle, encoder: nn.Module, *, episodes: i
     res = _weight_copy_episodes(teacher, encoder, episodes=episodes, seed=seed, image_size=image_size,
                                 num_envs=num_envs, parallel=parallel, keep_episodes=False, desc="weight copy")
     return np.asarray(res.final_performance, dtype=np.float64)
+
+
+def weight_copy_race(teacher: PolicyHandle, encoders: Sequence[nn.Module], *, episodes: int, seed: int,
+                     chunk: int = 10, margin: float = 2.0, image_size: int = 32, num_envs: int = 2,
+                     parallel: bool = False, on_chunk: Callable[[dict, list], None] | None = None,
+                     ) -> dict[int, np.ndarray]:
+    """:func:`weight_copy_scores` of each of ``encoders``, raced: they play the episodes in chunks of
+    ``chunk`` (0: all at once), and after each chunk an encoder whose weight copy's mean is below the
+    leader's by more than ``margin`` standard errors of their paired difference plays no more
+    (:func:`~trakdis.evaluation.race_survivors`). Each plays in its own
+    :class:`~trakdis.evaluation.EpisodeStream`, so an encoder's scores are the first episodes of its
+    :func:`weight_copy_scores` (all of them for those that finish). ``on_chunk(scores, survivors)``
+    after each chunk. Returns ``{index: scores of the episodes it played}``."""
+    import copy
+
+    from trakdis.envs import close_env
+    from trakdis.evaluation import EpisodeStream, episode_score, race_survivors
+
+    if episodes < 1 or chunk < 0:
+        raise ValueError(f"weight_copy_race: episodes ({episodes}) must be >= 1 and chunk ({chunk}) >= 0")
+    scores: dict[int, list[float]] = {k: [] for k in range(len(encoders))}
+    alive, streams, envs = list(scores), {}, {}
+    try:
+        while alive and len(scores[alive[0]]) < episodes:
+            n = min(chunk or episodes, episodes - len(scores[alive[0]]))
+            for k in alive:
+                if k not in streams:  # its configurations drawn with seed, as weight_copy_scores draws them
+                    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoders[k]).cpu().eval())
+                    envs[k] = handle.make_env(num_envs=num_envs, parallel=parallel, split="train",
+                                              image_size=image_size)
+                    streams[k] = EpisodeStream(envs[k], handle.make_policy(), max_steps=teacher.horizon, seed=seed)
+                scores[k] += [episode_score(next(streams[k])) for _ in range(n)]
+            if len(scores[alive[0]]) < episodes:
+                alive = race_survivors({k: scores[k] for k in alive}, margin=margin)
+                for k in set(streams) - set(alive):
+                    streams.pop(k).close()
+                    close_env(envs.pop(k))
+            if on_chunk is not None:
+                on_chunk(scores, list(alive))
+    finally:
+        for k in list(streams):
+            streams.pop(k).close()
+            close_env(envs.pop(k))
+    return {k: np.asarray(v, dtype=np.float64) for k, v in scores.items()}
 
 
 def _weight_copy_episodes(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int,

@@ -93,6 +93,35 @@ def test_collector_plays_the_episodes_of_env_rollout(case):
     assert not np.array_equal(other.final_performance, res.final_performance)
 
 
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_a_paused_episode_stream_continues_the_same_episodes(case):
+    """EpisodeStream: taken in pieces of 1, 2, ... episodes, with another stream on its own env played
+    between them, the episodes of one run_episodes call (early ends and half-used batches included)."""
+    from trakdis.evaluation import EpisodeStream, episode_score
+
+    factory, n, steps = CASES[case]
+    reference = run_episodes(factory(), Counting(), n + 2, max_steps=steps, keep_episodes=True, desc=None, seed=7)
+    env, other_env = factory(), factory()
+    taken, piece = [], 1
+    with EpisodeStream(env, Counting(), max_steps=steps, seed=7) as stream, \
+            EpisodeStream(other_env, Counting(), max_steps=steps, seed=8) as other:
+        while len(taken) < n + 2:
+            taken += [next(stream) for _ in range(min(piece, n + 2 - len(taken)))]
+            next(other)
+            piece += 1
+        assert stream.num_envs == (1 if case.startswith("single") else 2)
+    assert [episode_score(ep) for ep in taken] == reference.final_performance.tolist()
+    for ref, ep in zip(reference.episodes, taken):
+        for key in ("state", "action", ("next", "reward")):
+            torch.testing.assert_close(ep[key], ref[key], rtol=0, atol=0)
+    assert case.startswith("single") or not env.is_closed  # the caller's env, as with run_episodes
+    with pytest.raises(RuntimeError, match="after close"):
+        next(stream)
+    stream.close()  # idempotent
+    env.close()
+    other_env.close()
+
+
 def test_collector_leaves_the_env_open_and_the_thread_count():
     before = torch.get_num_threads()
     try:

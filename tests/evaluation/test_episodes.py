@@ -139,6 +139,21 @@ def test_standard_error_and_paired_difference():
         paired_difference([0.0, 1.0], [0.0])
 
 
+def test_race_survivors_drops_only_the_clearly_worse():
+    from trakdis.evaluation import race_survivors
+
+    leader = [0.8, 0.6, 0.9, 0.7]
+    scores = {"a": leader, "far": [s - 0.3 for s in leader], "close": [0.8, 0.7, 0.8, 0.6], "b": leader}
+    assert race_survivors(scores) == ["a", "close", "b"]  # a constant gap has no error: "far" stops
+    assert race_survivors(scores, margin=0.0) == ["a", "b"]  # ties with the leader stay
+    # the episodes all have played: a longer list is cut to the shortest; one episode gives no error yet
+    assert race_survivors({0: [1.0, 0.0, 0.0], 1: [0.0]}) == [0, 1]
+    assert race_survivors({0: [1.0, 1.0, 0.0], 1: [0.0, 0.0]}) == [0]
+    assert race_survivors({}) == []
+    with pytest.raises(ValueError, match="margin"):
+        race_survivors(scores, margin=-1)
+
+
 def test_results_report_their_rate():
     env = SerialEnv(2, make)
     res = run_episodes(env, policy, 4, max_steps=5, desc=None)

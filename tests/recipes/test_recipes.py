@@ -478,13 +478,14 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
 
 
 def test_train_encoder_keeps_the_member_whose_weight_copy_folds_best(workdir, teacher):
-    """--members 2 --select-episodes N: each member's weight copy plays the same N train-split episodes and
-    the file holds the best one alone (with the flip), its scores recorded."""
+    """--members 2 --select-episodes N: each member's weight copy plays the same N train-split episodes (raced in
+    chunks) and the file holds the best one alone (with the flip), its scores recorded."""
     out = run_recipe(workdir, "train_encoder", "--name", "enc-select", "--horizon", HORIZON, *DATA, "--epochs", 1,
                      "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16, "--threads", 1,
                      "--teacher", "runs/online_dt/teacher", "--student-rounds", 0, "--members", 2,
-                     "--select-episodes", 2, "--test-time-flip", "on")
+                     "--select-episodes", 2, "--select-chunk", 1, "--test-time-flip", "on")
     assert "member 0: weight copy" in out.stdout and "member 1: weight copy" in out.stdout
+    assert "weight copies after 1 episodes: member 0" in out.stdout  # raced: one episode gives no error, both play on
     run_dir = workdir / "runs" / "train_encoder" / "enc-select"
     saved = load_checkpoint(run_dir / "encoder.pt")
     means = {k: sum(v) / len(v) for k, v in saved["member_scores"].items()}

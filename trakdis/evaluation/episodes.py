@@ -6,7 +6,8 @@ environment, ``SerialEnv`` / ``ParallelEnv`` of ``N`` tasks or a single env, or 
 ``MultiSyncCollector`` of ``N`` processes) until ``num_episodes`` full episodes were played, and
 returns per-episode results: the normalized performance at the episode's end (the paper's
 metric), the return, the length, and optionally the rollout TensorDicts themselves (to insert
-into a replay buffer or to render videos).
+into a replay buffer or to render videos). :class:`EpisodeStream` hands the same episodes out one at a
+time, so that a caller can pause a sequence and continue it later.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -29,8 +30,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.progress import progress
 
-__all__ = ["COLLECTORS", "EpisodeResults", "episode_frames", "markdown_table", "paired_difference", "run_episodes",
-           "split_episodes", "standard_error", "summarize", "worker_env_fns", "write_summary_table"]
+__all__ = ["COLLECTORS", "EpisodeResults", "EpisodeStream", "episode_frames", "episode_score", "markdown_table",
+           "paired_difference", "race_survivors", "run_episodes", "split_episodes", "standard_error", "summarize",
+           "worker_env_fns", "write_summary_table"]
 
 
 @dataclass
@@ -93,6 +95,29 @@ def paired_difference(before: Sequence[float] | np.ndarray, after: Sequence[floa
         raise ValueError(f"paired_difference: {a.size} and {b.size} values are not paired")
     d = b - a
     return float(d.mean()), standard_error(d)
+
+
+def race_survivors(scores: Mapping[Any, Sequence[float] | np.ndarray], *, margin: float = 2.0) -> list:
+    """The keys of ``scores`` (policy -> per-episode scores of the same configurations, in the same order)
+    still in a race after the episodes all of them have played: the leader (highest mean) and each one
+    whose paired difference to the leader is within ``margin`` of its standard errors (all of them before
+    two episodes). Racing (Maron and Moore 1994): a policy far behind after a few episodes plays no more,
+    the close ones play on."""
+    if margin < 0:
+        raise ValueError(f"race_survivors: margin must be >= 0, got {margin}")
+    if not scores:
+        return []
+    n = min(len(v) for v in scores.values())
+    if n < 2:  # no standard error yet
+        return list(scores)
+    played = {k: np.asarray(v, dtype=np.float64)[:n] for k, v in scores.items()}
+    leader = max(played, key=lambda k: played[k].mean())
+    survivors = []
+    for k, v in played.items():
+        gap, se = paired_difference(v, played[leader])
+        if k == leader or gap <= margin * se:
+            survivors.append(k)
+    return survivors
 
 
 def _first_done(done: torch.Tensor) -> torch.Tensor:
@@ -201,73 +226,30 @@ def run_episodes(
     policies; exact resumption). Sampled actions and a policy's own noise are drawn per process
     with ``"multi_sync"``, so only deterministic policies give the same episodes there.
     """
-    from torchrl.collectors import Collector, MultiSyncCollector
-
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
-    if collector not in COLLECTORS:
-        raise ValueError(f"collector must be one of {COLLECTORS}, got {collector!r}")
-    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     finals, returns, lengths, unstable, kept = [], [], [], [], []
-    threads = torch.get_num_threads()
     t0 = time.perf_counter()
-    if collector == "sync":
-        n_env = int(np.prod(tuple(env.batch_size))) if len(env.batch_size) else 1
-        if seed is not None:
-            # before the Collector: its constructor resets env, and that reset starts the first episodes
-            env.set_seed(seed)
-        # use_buffers=False: the batch is stacked from the steps as env.rollout does (keys the policy
-        # writes beyond the env's specs, e.g. a TanhNormal's loc/scale, kept)
-        coll = Collector(env, policy, frames_per_batch=n_env * max_steps, total_frames=-1, exploration_type=mode,
-                         use_buffers=False, auto_register_policy_transforms=False)
-    else:
-        env_fns = worker_env_fns(env)
-        n_env = len(env_fns)
-        # num_threads: TorchRL would otherwise lower this process's thread count by the number of workers
-        coll = MultiSyncCollector(env_fns, policy, frames_per_batch=n_env * max_steps, total_frames=-1,
-                                  exploration_type=mode, use_buffers=False, cat_results="stack", num_threads=threads,
-                                  auto_register_policy_transforms=False)
+    stream = EpisodeStream(env, policy, max_steps=max_steps, deterministic=deterministic, seed=seed,
+                           collector=collector)
     bar = progress(total=num_episodes, desc=desc)
     try:
-        if seed is not None and collector == "multi_sync":
-            coll.set_seed(seed)  # seeds each process's env in turn (TorchRL's seed chain), then resets them
-        it = iter(coll)
-        with torch.no_grad(), set_exploration_type(mode):
+        with torch.no_grad(), set_exploration_type(stream.exploration_type):
             while len(finals) < num_episodes:
-                batch = next(it)
-                batch.names = None
-                # split_episodes, not split_trajs/trajs_per_batch: those also yield the episodes begun after an
-                # early end, and trajs_per_batch continues unfinished ones into the next batch (_single.py)
-                episodes = split_episodes(batch.exclude("collector"))
-                for ep in episodes:
-                    if len(finals) >= num_episodes:
-                        break
-                    nxt = ep.get("next")
-                    if "normalized_performance" not in nxt.keys():
-                        raise KeyError(
-                            "run_episodes: the environment writes no ('next', 'normalized_performance'); "
-                            f"next keys are {sorted(map(str, nxt.keys()))}"
-                        )
-                    finals.append(float(nxt.get("normalized_performance")[-1].reshape(-1)[0]))
-                    returns.append(float(nxt.get("reward").sum()))
-                    lengths.append(ep.shape[0])
-                    unstable.append(bool(nxt.get("sim_unstable").any()) if "sim_unstable" in nxt.keys() else False)
-                    if keep_episodes:
-                        kept.append(ep)
-                    if on_episode is not None:
-                        on_episode(ep)
-                    bar.update(1)
-                if len(finals) < num_episodes:
-                    _start_next_episodes(coll, batch, n_env, collector, env)
+                ep = next(stream)
+                nxt = ep.get("next")
+                finals.append(episode_score(ep))
+                returns.append(float(nxt.get("reward").sum()))
+                lengths.append(ep.shape[0])
+                unstable.append(bool(nxt.get("sim_unstable").any()) if "sim_unstable" in nxt.keys() else False)
+                if keep_episodes:
+                    kept.append(ep)
+                if on_episode is not None:
+                    on_episode(ep)
+                bar.update(1)
     finally:
         bar.close()
-        try:
-            if collector == "sync":
-                _shutdown(coll, close_env=False)  # env belongs to the caller (close_env)
-            else:
-                _shutdown(coll)  # its processes and their envs
-        finally:
-            torch.set_num_threads(threads)  # TorchRL's shutdown raises the thread count (see close_env)
+        stream.close()
     return EpisodeResults(
         final_performance=np.asarray(finals),
         returns=np.asarray(returns),
@@ -275,8 +257,110 @@ def run_episodes(
         unstable=np.asarray(unstable),
         episodes=kept,
         seconds=time.perf_counter() - t0,
-        num_envs=n_env,
+        num_envs=stream.num_envs,
     )
+
+
+def episode_score(episode: TensorDictBase) -> float:
+    """The normalized performance at the last step of ``episode`` (one episode, ``[T]``): the paper's metric."""
+    nxt = episode.get("next")
+    if "normalized_performance" not in nxt.keys():
+        raise KeyError(
+            "run_episodes: the environment writes no ('next', 'normalized_performance'); "
+            f"next keys are {sorted(map(str, nxt.keys()))}"
+        )
+    return float(nxt.get("normalized_performance")[-1].reshape(-1)[0])
+
+
+class EpisodeStream:
+    """The episodes of :func:`run_episodes`, one per ``next()``, for as long as the caller asks.
+
+    Each collector batch plays one episode on each of the ``N`` environments; ``next()`` hands them out
+    in turn and starts the next batch only when they are used up. A caller can therefore stop after
+    any episode, do something else (play another stream), and continue: the episodes after the first
+    ``k`` are those that one :func:`run_episodes` call for more episodes would have played (the same
+    resets, in the same order). Used to race several policies on the same configurations, each in its
+    own stream, dropping the clearly worse ones early (:func:`trakdis.policies.weight_copy_race`).
+
+    ``env``, ``policy``, ``max_steps``, ``deterministic``, ``seed`` and ``collector``: as in
+    :func:`run_episodes`. :meth:`close` (or leaving a ``with`` block) shuts the collector down; with
+    ``"sync"``, ``env`` stays open (the caller's).
+    """
+
+    def __init__(self, env, policy: Callable[[TensorDictBase], TensorDictBase], *, max_steps: int,
+                 deterministic: bool = True, seed: int | None = None, collector: str = "sync"):
+        from torchrl.collectors import Collector, MultiSyncCollector
+
+        if collector not in COLLECTORS:
+            raise ValueError(f"collector must be one of {COLLECTORS}, got {collector!r}")
+        self.exploration_type = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+        self.collector, self._env = collector, env
+        self._threads = torch.get_num_threads()
+        self._pending: list[TensorDictBase] = []
+        self._batch = self._it = None
+        if collector == "sync":
+            self.num_envs = int(np.prod(tuple(env.batch_size))) if len(env.batch_size) else 1
+            if seed is not None:
+                # before the Collector: its constructor resets env, and that reset starts the first episodes
+                env.set_seed(seed)
+            # use_buffers=False: the batch is stacked from the steps as env.rollout does (keys the policy
+            # writes beyond the env's specs, e.g. a TanhNormal's loc/scale, kept)
+            self._coll = Collector(env, policy, frames_per_batch=self.num_envs * max_steps, total_frames=-1,
+                                   exploration_type=self.exploration_type, use_buffers=False,
+                                   auto_register_policy_transforms=False)
+        else:
+            env_fns = worker_env_fns(env)
+            self.num_envs = len(env_fns)
+            # num_threads: TorchRL would otherwise lower this process's thread count by the number of workers
+            self._coll = MultiSyncCollector(env_fns, policy, frames_per_batch=self.num_envs * max_steps,
+                                            total_frames=-1, exploration_type=self.exploration_type,
+                                            use_buffers=False, cat_results="stack", num_threads=self._threads,
+                                            auto_register_policy_transforms=False)
+            if seed is not None:
+                try:
+                    self._coll.set_seed(seed)  # each process's env in turn (TorchRL's seed chain), then resets
+                except BaseException:
+                    self.close()
+                    raise
+
+    def __iter__(self) -> EpisodeStream:
+        return self
+
+    def __next__(self) -> TensorDictBase:
+        if self._coll is None:
+            raise RuntimeError("EpisodeStream: next() after close()")
+        if not self._pending:
+            with torch.no_grad(), set_exploration_type(self.exploration_type):
+                if self._batch is not None:  # every env starts a new episode before the next batch
+                    _start_next_episodes(self._coll, self._batch, self.num_envs, self.collector, self._env)
+                if self._it is None:
+                    self._it = iter(self._coll)
+                batch = next(self._it)
+            batch.names = None
+            self._batch = batch
+            # split_episodes, not split_trajs/trajs_per_batch: those also yield the episodes begun after an
+            # early end, and trajs_per_batch continues unfinished ones into the next batch (_single.py)
+            self._pending = split_episodes(batch.exclude("collector"))
+        return self._pending.pop(0)
+
+    def close(self) -> None:
+        """Shut the collector down (its processes and, with ``"multi_sync"``, their envs); idempotent."""
+        coll, self._coll, self._pending = self._coll, None, []
+        if coll is None:
+            return
+        try:
+            if self.collector == "sync":
+                _shutdown(coll, close_env=False)  # env belongs to the caller (close_env)
+            else:
+                _shutdown(coll)  # its processes and their envs
+        finally:
+            torch.set_num_threads(self._threads)  # TorchRL's shutdown raises the thread count (see close_env)
+
+    def __enter__(self) -> EpisodeStream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _start_next_episodes(coll, batch: TensorDictBase, n_env: int, collector: str, env) -> None:
