@@ -8,18 +8,18 @@
    on states with 1 cm of Gaussian noise: ``--teacher-args``).
 2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
    and those the weight-copied student visits (``--teacher``, rounds of its rollouts); three trained
-   side by side, the one the weight copy folds best with kept (``--members 3 --select-episodes 30``).
+   side by side, the one the weight copy folds best with kept (``--members 3 --select-episodes 30``, raced:
+   a member clearly behind after 10 or 20 of them plays no more).
 3. ``recipes/distill.py``: the image-only student (weight copy, distillation on the expert data; on the
    diagonal folds the snapshot kept by its train-split selection episodes, on ClothFold the last round's, with
    the expert's actions beside the teacher's labels).
 4. ``recipes/evaluate.py`` for the scripted expert, the teacher and the student on the same
    ``--trials`` eval-split configurations (same seed), then one Markdown table: mean, std,
-   25/50/75th percentiles and the ratio to the teacher. The expert's episodes, then the teacher's, run
-   in a low-priority background process from the end of stage 1 on, on the core that the encoder's
-   and the student's training leave idle (``--no-background-evaluations``: after them); the student's
-   (and the teacher's if the background has not started it by then), the encoder stage's rollouts and
-   selection episodes and the student stage's selection episodes, on 2 worker processes
-   (``--no-parallel``: in turn). The numbers are the same.
+   25/50/75th percentiles and the ratio to the teacher. The expert's episodes (from the start), then the
+   teacher's, run in a low-priority background process, on the core that the teacher's, the encoder's
+   and the student's training leave idle (``--no-background-evaluations``: after them); the student's,
+   the encoder stage's rollouts and selection episodes and the student stage's selection episodes, on
+   2 worker processes (``--no-parallel``: in turn). The numbers are the same.
    The stages evaluate nothing themselves (``--eval-episodes 0``; a stage's own ``--eval-episodes`` in its
    ``--*-args`` wins): the table has the evaluations. Each stage's default options: ``trakdis.method``.
 
@@ -43,6 +43,7 @@ from trakdis.evaluation import write_summary_table
 from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args,
                             teacher_stage_args)
 from trakdis.policies import load_policy
+from trakdis.utils.config import parse_config
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.stages import Stages
 
@@ -68,8 +69,8 @@ class PipelineConfig(RunConfig):
     mask_unseen_pickers: bool = False
     """pass --mask-unseen-pickers to the teacher and encoder stages (pickers out of the camera view masked)"""
     background_evaluations: bool = True
-    """evaluate the scripted expert, then the teacher, in a low-priority background process while the encoder and
-    the student train (--no-background-evaluations: after them, on 2 worker processes with --parallel)"""
+    """evaluate the scripted expert (from the start), then the teacher, in a low-priority background process while
+    the stages train (--no-background-evaluations: after them, on 2 worker processes with --parallel)"""
     parallel: bool = True
     """evaluate the teacher and the student, and play the encoder's and the student's rollouts and selection
     episodes, on 2 worker processes (--no-parallel: in turn; the same numbers)"""
@@ -81,17 +82,24 @@ def main(argv=None) -> pd.DataFrame:
     stages = Stages(run, RECIPES)
     mask = cfg.mask_unseen_pickers
     parallel = ["--parallel"] if cfg.parallel else []  # the evaluations
+    teacher_args = teacher_stage_args(cfg.task, cfg.teacher_args, mask_unseen_pickers=mask)
+    online_dt = stages.recipe("online_dt")  # the expert plays episodes of the teacher's length
+    horizon = parse_config(online_dt.OnlineDTConfig, teacher_args, presets=online_dt.PRESETS).horizon
+    evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
     directories, policies = {}, {"expert": "expert"}
+    background = ("expert", "teacher") if cfg.background_evaluations else ()
     with stages.queued():  # submitted evaluations run in the background, in turn, beside the foreground stages
-        teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt",
-                             teacher_stage_args(cfg.task, cfg.teacher_args, mask_unseen_pickers=mask))
+        if "expert" in background:  # from the start, on the core that the teacher's training leaves idle
+            directories["expert"] = stages.submit("evaluate", f"{name}-eval-expert", "summary.csv",
+                                                  ["--policy", "expert", *evaluate])
+        teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt", teacher_args)
         policies["teacher"] = str(teacher)
-        horizon = load_policy(teacher).horizon  # the expert plays episodes of the same length
-        evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
-        if cfg.background_evaluations:  # on the core that the encoder's and the student's training leave idle
-            for label in ("expert", "teacher"):
-                directories[label] = stages.submit("evaluate", f"{name}-eval-{label}", "summary.csv",
-                                                   ["--policy", policies[label], *evaluate])
+        if load_policy(teacher).horizon != horizon:  # a resumed teacher stage with another --horizon
+            raise ValueError(f"{teacher / 'policy.pt'}: horizon {load_policy(teacher).horizon}, but the teacher's "
+                             f"arguments give {horizon}; run the pipeline under another --name")
+        if "teacher" in background:  # beside the encoder's and the student's training
+            directories["teacher"] = stages.submit("evaluate", f"{name}-eval-teacher", "summary.csv",
+                                                   ["--policy", policies["teacher"], *evaluate])
         encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
                              encoder_stage_args(cfg.task, teacher, cfg.encoder_args, parallel=cfg.parallel,
                                                 mask_unseen_pickers=mask))

@@ -46,6 +46,15 @@ def calls(tmp_path, name):
     return json.loads((tmp_path / "runs" / "toy" / name / "calls.json").read_text())
 
 
+def test_a_recipe_is_imported_once_and_its_main_runs_the_stage(stages, tmp_path):
+    module = stages.recipe("toy")
+    assert stages.recipe("toy") is module and callable(module.main)
+    stages.run("toy", "m", "out.txt", [])
+    assert stages.recipe("toy") is module and (tmp_path / "runs" / "toy" / "m" / "out.txt").exists()
+    with pytest.raises(FileNotFoundError, match="missing.py"):
+        stages.recipe("missing")
+
+
 def test_a_stage_runs_once_then_is_skipped_and_an_interrupted_one_resumes(stages, tmp_path, capsys):
     directory = stages.run("toy", "a", "out.txt", ["--x", "1"])
     assert directory.resolve() == tmp_path / "runs" / "toy" / "a" and (directory / "out.txt").exists()

@@ -139,13 +139,17 @@ class Stages:
                                          *common, *args], stdout=log, stderr=subprocess.STDOUT)
             return BackgroundStage(proc, directory, f"{recipe}/{run_name} (background)")
         self.pump()  # a queued stage may start beside this one
-        if recipe not in self._modules:
-            self._modules[recipe] = import_recipe(script)
         start = time.perf_counter()
-        self._modules[recipe].main([*common, *args])
+        self.recipe(recipe).main([*common, *args])
         self._record(f"{recipe}/{run_name}", time.perf_counter() - start)
         self.pipeline.print(f"{recipe}: done in {self.timings[f'{recipe}/{run_name}']:.0f} s ({directory})")
         return directory
+
+    def recipe(self, recipe: str) -> ModuleType:
+        """The recipe script ``<recipes>/<recipe>.py`` imported as a module (once): its ``main``, its configuration."""
+        if recipe not in self._modules:
+            self._modules[recipe] = import_recipe(self.recipes / f"{recipe}.py")
+        return self._modules[recipe]
 
     def _record(self, key: str, seconds: float) -> None:
         with self._lock:
