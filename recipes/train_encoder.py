@@ -215,9 +215,9 @@ def main(argv=None) -> dict:
         scores = state["member_scores"]
         for k, v in scores.items():
             run.print(f"member {k}: weight copy {sum(v) / len(v):.3f} on {len(v)} train-split episodes")
-        finished = {k: sum(v) / len(v) for k, v in scores.items() if len(v) == max(map(len, scores.values()))}
         means = {k: sum(v) / len(v) for k, v in scores.items()}
-        selected = max(finished, key=finished.get)  # among the members that played every episode
+        played = max(map(len, scores.values()))
+        selected = max((k for k, v in scores.items() if len(v) == played), key=means.get)  # of those that played all
         run.log(state["epoch"], {f"select/member{k}_normalized_performance": m for k, m in means.items()})
         run.print(f"--select-episodes: member {selected} kept")
         encoder = encoder.members[selected]

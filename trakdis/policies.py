@@ -393,48 +393,55 @@ def weight_copy_race(teacher: PolicyHandle, encoders: Sequence[nn.Module], *, ep
     :class:`~trakdis.evaluation.EpisodeStream`, so an encoder's scores are the first episodes of its
     :func:`weight_copy_scores` (all of them for those that finish). ``on_chunk(scores, survivors)``
     after each chunk. Returns ``{index: scores of the episodes it played}``."""
-    import copy
-
     from trakdis.envs import close_env
     from trakdis.evaluation import EpisodeStream, episode_score, race_survivors
 
     if episodes < 1 or chunk < 0:
         raise ValueError(f"weight_copy_race: episodes ({episodes}) must be >= 1 and chunk ({chunk}) >= 0")
     scores: dict[int, list[float]] = {k: [] for k in range(len(encoders))}
-    alive, streams, envs = list(scores), {}, {}
+    alive, played, streams = list(scores), 0, {}  # streams: index -> (its stream, its env)
+
+    def stop(k: int) -> None:
+        stream, env = streams.pop(k)
+        stream.close()
+        close_env(env)
+
     try:
-        while alive and len(scores[alive[0]]) < episodes:
-            n = min(chunk or episodes, episodes - len(scores[alive[0]]))
+        while alive and played < episodes:
+            n = min(chunk or episodes, episodes - played)
             for k in alive:
                 if k not in streams:  # its configurations drawn with seed, as weight_copy_scores draws them
-                    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoders[k]).cpu().eval())
-                    envs[k] = handle.make_env(num_envs=num_envs, parallel=parallel, split="train",
-                                              image_size=image_size)
-                    streams[k] = EpisodeStream(envs[k], handle.make_policy(), max_steps=teacher.horizon, seed=seed)
-                scores[k] += [episode_score(next(streams[k])) for _ in range(n)]
-            if len(scores[alive[0]]) < episodes:
+                    handle, env = _weight_copy_env(teacher, encoders[k], num_envs=num_envs, parallel=parallel,
+                                                   image_size=image_size)
+                    streams[k] = EpisodeStream(env, handle.make_policy(), max_steps=teacher.horizon, seed=seed), env
+                scores[k] += [episode_score(next(streams[k][0])) for _ in range(n)]
+            played += n
+            if played < episodes:
                 alive = race_survivors({k: scores[k] for k in alive}, margin=margin)
                 for k in set(streams) - set(alive):
-                    streams.pop(k).close()
-                    close_env(envs.pop(k))
+                    stop(k)
             if on_chunk is not None:
                 on_chunk(scores, list(alive))
     finally:
         for k in list(streams):
-            streams.pop(k).close()
-            close_env(envs.pop(k))
+            stop(k)
     return {k: np.asarray(v, dtype=np.float64) for k, v in scores.items()}
+
+
+def _weight_copy_env(teacher: PolicyHandle, encoder: nn.Module, *, num_envs: int, parallel: bool, image_size: int):
+    """The weight-copied student of ``teacher`` on a frozen copy of ``encoder``, and its train-split env."""
+    import copy
+
+    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
+    return handle, handle.make_env(num_envs=num_envs, parallel=parallel, split="train", image_size=image_size)
 
 
 def _weight_copy_episodes(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int,
                           num_envs: int, parallel: bool, keep_episodes: bool, desc: str):
-    import copy
-
     from trakdis.envs import close_env
     from trakdis.evaluation import run_episodes
 
-    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
-    env = handle.make_env(num_envs=num_envs, parallel=parallel, split="train", image_size=image_size)
+    handle, env = _weight_copy_env(teacher, encoder, num_envs=num_envs, parallel=parallel, image_size=image_size)
     try:
         return run_episodes(env, handle.make_policy(), episodes, max_steps=teacher.horizon, keep_episodes=keep_episodes,
                             seed=seed, desc=desc)
