@@ -151,6 +151,23 @@ def test_train_encoder_stop_resume(workdir, dataset, encoder):
     assert json.loads((run_dir / "config.json").read_text())["aug"] is False
 
 
+def test_train_encoder_with_teacher_resumes_exactly(workdir, dataset, teacher):
+    """With --teacher (student rounds), a run stopped after its first epoch and resumed saves the uninterrupted run's
+    encoder bit for bit: building the teacher's modules draws from the RNG, so the checkpoint's streams are restored
+    after it (they were restored before it until stop 48, and the resumed encoder differed from epoch 2 on)."""
+    args = ["--horizon", HORIZON, *DATA, "--epochs", 2, "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16,
+            "--threads", 1, "--teacher", "runs/online_dt/teacher", "--student-rounds", 1, "--student-episodes", 1,
+            "--student-epochs", 1]
+    run_recipe(workdir, "train_encoder", "--name", "enc_t_full", *args)
+    run_recipe(workdir, "train_encoder", "--name", "enc_t_cut", *args, "--stop-after", 1)
+    out = run_recipe(workdir, "train_encoder", "--resume", "--name", "enc_t_cut")
+    assert "from step 1" in out.stdout and "student round 1/1" in out.stdout
+    runs = workdir / "runs" / "train_encoder"
+    full, cut = (load_checkpoint(runs / name / "encoder.pt")["state_dict"] for name in ("enc_t_full", "enc_t_cut"))
+    assert full.keys() == cut.keys() and all(torch.equal(full[k], cut[k]) for k in full)
+    pd.testing.assert_frame_equal(read_log(runs / "enc_t_full"), read_log(runs / "enc_t_cut"), check_like=True)
+
+
 def test_train_encoder_cosine_schedule_resumes(workdir, dataset):
     """--lr-schedule cosine: the learning rate falls to 0 at the last epoch, also across a --stop-after /
     --resume (the schedule's state is in the checkpoint; a fresh one would end at a quarter of --lr)."""
