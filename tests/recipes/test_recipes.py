@@ -154,7 +154,7 @@ def test_train_encoder_stop_resume(workdir, dataset, encoder):
 def test_train_encoder_with_teacher_resumes_exactly(workdir, dataset, teacher):
     """With --teacher (student rounds), a run stopped after its first epoch and resumed saves the uninterrupted run's
     encoder bit for bit: building the teacher's modules draws from the RNG, so the checkpoint's streams are restored
-    after it (they were restored before it until stop 48, and the resumed encoder differed from epoch 2 on)."""
+    after it (restored before it, the resumed encoder differed from its second epoch on)."""
     args = ["--horizon", HORIZON, *DATA, "--epochs", 2, "--batch-size", 8, "--channels", 4, 4, 4, 4, "--hidden-dim", 16,
             "--threads", 1, "--teacher", "runs/online_dt/teacher", "--student-rounds", 1, "--student-episodes", 1,
             "--student-epochs", 1]
