@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Literal
 
-from trakdis.data import DataConfig, offline_state_buffer
+from trakdis.data import DataConfig, expert_targets, offline_state_buffer
 from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import EvalConfig, RunEnvs, compare_scores
@@ -54,6 +54,9 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     exploration_rtg: float | None = None  # initial return-to-go of the online rollouts (default: the evaluation's)
     offline_control: bool = False  # the online schedule without adding the rollouts to the buffer (the control)
     exploration: Literal["mean", "sample"] = "mean"  # the online rollouts' actions: the policy's mean, or samples
+    online_labels: Literal["executed", "expert"] = "executed"
+    """what the DT learns on its rollouts: the actions it executed (Online DT), or the scripted expert's
+    action at each state it reached (DAgger; its context still reads the executed ones)"""
     eval_rtg: float | None = None  # initial return-to-go at evaluation (default: the offline data's best return)
     expert_episodes: int = 10  # the scripted expert on the first N evaluation episodes, for comparison (0: none)
     expert_cache: bool = True  # reuse the expert's evaluation cached in <data.root>/expert_scores/
@@ -83,6 +86,9 @@ def main(argv=None) -> dict:
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                               action_eps=dt_cfg.action_eps)
+    dagger = cfg.online_labels == "expert"  # the loss's target: the expert's action (the demonstrations': theirs)
+    if dagger:
+        loss.set_keys(action_target="expert_action")
     updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
               f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len}; action dims {list(dt_cfg.hidden_action_dims)} "
@@ -99,7 +105,8 @@ def main(argv=None) -> dict:
         context_len=cfg.model.context_len, rtg_scale=cfg.rtg_scale, min_scale=cfg.state_scale_floor,
         state_noise=cfg.state_noise, fill=OutOfViewFill.for_task(cfg.task) if cfg.mask_unseen_pickers else None,
         early_windows=cfg.early_windows, replacement=cfg.buffer_replacement, collect_pixels=cfg.collect_pixels,
-        log=run.print, progress=cfg.progress)
+        log=run.print, progress=cfg.progress, target_key="expert_action" if dagger else None,
+        extra_capacity=cfg.online_rounds * cfg.episodes_per_round if dagger else 0)  # DAgger keeps every rollout
     state.load()  # resumed: the updater and the buffer as checkpointed
     eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else state["best_return"]
     explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
@@ -132,7 +139,9 @@ def main(argv=None) -> dict:
         roll_out = lambda r: online_rollouts(  # noqa: E731
             explore_env, handle, buffer, cfg.episodes_per_round, horizon=cfg.horizon, seed=cfg.seed + 1000 * (r + 1),
             policy_seed=cfg.seed, deterministic=cfg.exploration == "mean", add=not cfg.offline_control,
-            collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1})
+            collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1},
+            label=(lambda ep: expert_targets(ep, cfg.task)) if dagger else None,
+            keys=("state", "action", "expert_action") if dagger else ("state", "action"))
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")

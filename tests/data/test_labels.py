@@ -6,7 +6,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from trakdis.data import DataConfig, DatasetError, collect_expert_dataset, expert_labels, load_trajectories
+from trakdis.data import (DataConfig, DatasetError, collect_expert_dataset, expert_labels, expert_targets,
+                          load_trajectories)
 from trakdis.data.loading import load_offline_data
 from trakdis.envs import expert_action, expert_version, task_spec
 from trakdis.utils.phases import PhaseTimer
@@ -86,3 +87,24 @@ def test_load_trajectories_relabels_in_memory_only(tmp_path):
     data, _ = load_offline_data(cfg, phases=PhaseTimer(), task=meta["task"], horizon=4, seed=3, log=lambda *a: None,
                                 progress=False)
     torch.testing.assert_close(data["action"], expert["action"])
+
+
+def test_expert_targets_label_a_rollout_beside_its_executed_actions():
+    """DAgger's labels: the expert's action at each step's state and step count, as a new entry; the
+    executed actions stay; episodes [T] and batches [N, T] alike; missing entries are named."""
+    torch.manual_seed(0)
+    steps, _ = _steps([4, 4], task="ClothFoldDiagonalPinned")
+    executed = steps["action"].clone()
+    state, step_count = steps["state"].numpy(), steps["step_count"].numpy()
+    want = torch.as_tensor(expert_action("ClothFoldDiagonalPinned", state, step_count))
+    out = expert_targets(steps, "ClothFoldDiagonalPinned")
+    assert out is steps and torch.equal(out["action"], executed)
+    torch.testing.assert_close(out["expert_action"], want)
+    assert want.abs().sum() > 0
+    one = expert_targets(steps[1].exclude("expert_action"), "ClothFoldDiagonalPinned", out_key="target")
+    torch.testing.assert_close(one["target"], want[1])
+    with pytest.raises(KeyError, match=r"expert_targets: the episode has no \['step_count'\]"):
+        expert_targets(steps.exclude("step_count"), "ClothFoldDiagonalPinned")
+    cloth_fold = _steps([4, 4])[0].set("action", torch.zeros(2, 4, 4))  # a diagonal fold's action size
+    with pytest.raises(ValueError, match=r"expert's actions have shape \(2, 4, 8\), the episode's 'action' \(2, 4, 4\)"):
+        expert_targets(cloth_fold, "ClothFold")

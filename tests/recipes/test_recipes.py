@@ -87,6 +87,31 @@ def test_online_dt_serial_envs_and_cached_expert_give_the_same_run(workdir, data
                                   check_exact=False, atol=1e-5, check_like=True)  # columns in logging order
 
 
+def test_online_dt_dagger_learns_the_experts_action_on_its_rollouts(workdir, dataset, teacher):
+    """--online-labels expert (DAgger): the buffer keeps every rollout beside the demonstrations, each
+    step labelled with the scripted expert's action at its state and step; the demonstrations' label is
+    their own action, so the offline phase is the plain run's, update for update."""
+    from trakdis.envs import expert_action
+
+    run_recipe(workdir, "online_dt", *online_dt_args("dagger", "--online-labels", "expert", "--eval-every", 0))
+    run_dir = workdir / "runs" / "online_dt" / "dagger"
+    buffer = load_checkpoint(run_dir / "checkpoint.pt")["buffer"]
+    assert buffer["config"]["capacity"] == 4 + 2 * 2 and "expert_action" in buffer["config"]["keys"]
+    assert buffer["online"].tolist() == [False] * 4 + [True] * 4  # every rollout kept, whatever its return
+    stored = buffer["replay_buffer"]["_storage"]["_storage"]
+    state, action, label = stored["state"], stored["action"], stored["expert_action"]
+    steps = torch.arange(HORIZON).expand(*state.shape[:2]).unsqueeze(-1)
+    want = torch.as_tensor(expert_action("ClothFold", state.numpy(), steps.numpy()))
+    torch.testing.assert_close(label[4:], want[4:])
+    assert torch.equal(label[:4], action[:4]) and (label[4:] - action[4:]).abs().max() > 0.1
+    plain, dagger = read_log(teacher), read_log(run_dir)
+    offline = lambda f: f.loc[f["phase"] == 0, ["step", "train/loss_nll"]].dropna().reset_index(drop=True)  # noqa: E731
+    assert len(offline(plain)) >= 3
+    pd.testing.assert_frame_equal(offline(plain), offline(dagger), check_exact=False, atol=1e-5)
+    assert (dagger.loc[dagger["phase"] == 1, "train/loss_nll"].dropna().to_numpy()
+            != plain.loc[plain["phase"] == 1, "train/loss_nll"].dropna().to_numpy()).all()
+
+
 def test_online_dt_damaged_expert_cache_is_an_error_naming_it(workdir, dataset):
     import subprocess
     import sys

@@ -20,7 +20,7 @@ from .dataset import (
     partial_path,
     read_meta,
 )
-from .labels import ACTION_LABELS, ActionLabels, expert_labels
+from .labels import ACTION_LABELS, ActionLabels, expert_labels, expert_targets
 from .layout import (ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, encode_trajectories, episode_to_trajectory, real_steps,
                      split_episodes_train_val, valid_mask)
 from .loading import (DataConfig, TrainValSteps, default_dataset_path, ensure_dataset, ensure_dataset_timed,
@@ -40,6 +40,7 @@ __all__ = [
     "ACTION_LABELS",
     "ActionLabels",
     "expert_labels",
+    "expert_targets",
     "ACTING_KEYS",
     "REQUIRED_KEYS",
     "STEP_KEYS",

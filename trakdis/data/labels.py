@@ -10,6 +10,10 @@ the teacher is measured in docs/recipes/online_dt.md ("Clean labels").
 
 * ``"executed"``: the recorded actions (what the env received);
 * ``"expert"``: the scripted expert's noise-free action at each recorded step, in place of them.
+
+The same recomputation labels a learner's own rollouts (:func:`expert_targets`): DAgger (Ross et al.,
+"A Reduction of Imitation Learning and Structured Prediction to No-Regret Online Learning", AISTATS
+2011), the expert's action at the states the learner reaches, which no demonstration visits.
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ from tensordict import TensorDictBase
 from .dataset import DatasetError, collected_expert_version
 from .layout import valid_mask
 
-__all__ = ["ACTION_LABELS", "ActionLabels", "expert_labels"]
+__all__ = ["ACTION_LABELS", "ActionLabels", "expert_labels", "expert_targets"]
 
 ActionLabels = Literal["executed", "expert"]
 ACTION_LABELS: tuple[str, ...] = ("executed", "expert")
@@ -59,3 +63,22 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
                            f"'action' {tuple(recorded.shape)}")
     valid = valid_mask(meta["lengths"], recorded.shape[1]).unsqueeze(-1)
     return torch.where(valid, labels.to(recorded.dtype), torch.zeros((), dtype=recorded.dtype))
+
+
+def expert_targets(episode: TensorDictBase, task: str, *, out_key: str = "expert_action") -> TensorDictBase:
+    """Writes into ``episode`` (a rollout ``[T]`` or ``[N, T]`` holding the env's raw ``"state"`` and
+    ``"step_count"``) the scripted expert's noise-free action at every step, as ``out_key``, beside
+    the executed ``"action"``, which it leaves as it is (a Decision Transformer reads its own executed
+    actions in its context, and learns ``out_key``); returns ``episode``."""
+    from trakdis.envs.experts import expert_action
+
+    missing = [k for k in ("state", "step_count", "action") if k not in episode.keys()]
+    if missing:
+        raise KeyError(f"expert_targets: the episode has no {missing}; keys: {sorted(map(str, episode.keys()))}")
+    action = episode.get("action")
+    state, step_count = episode.get("state").cpu().numpy(), episode.get("step_count").cpu().numpy()
+    labels = torch.as_tensor(expert_action(task, state, step_count))
+    if labels.shape != action.shape:
+        raise ValueError(f"expert_targets: the {task} expert's actions have shape {tuple(labels.shape)}, the episode's "
+                         f"'action' {tuple(action.shape)}")
+    return episode.set(out_key, labels.to(action))

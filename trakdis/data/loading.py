@@ -288,7 +288,8 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
                          horizon: int, seed: int, context_len: int, rtg_scale: float = 1.0, min_scale: float = 1e-3,
                          state_noise: float = 0.0, fill: OutOfViewFill | None = None, early_windows: bool = False,
                          replacement: str = "oldest", collect_pixels: bool = False, log: Callable[..., None] = print,
-                         progress: bool = True) -> tuple[TrajectoryReplayBuffer, StateNormalizer]:
+                         progress: bool = True, target_key: str | None = None,
+                         extra_capacity: int = 0) -> tuple[TrajectoryReplayBuffer, StateNormalizer]:
     """``(buffer, normalizer)``: a teacher's replay buffer of the expert dataset's states and actions,
     its sampled windows standardised by ``normalizer`` (a :class:`~trakdis.transforms.StateNormalizer`
     of ``"state"``, the acting policy's too): with ``state_noise`` > 0, Gaussian noise of that std
@@ -301,7 +302,12 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
     statistics of its real raw states, ``min_scale`` the floor of the std; its best episode return)
     and fills the buffer. A resumed run does not read the dataset: the counters are the
     checkpoint's, and the buffer, registered as the state's object ``"buffer"``, is filled by
-    ``state.load()``."""
+    ``state.load()``.
+
+    ``target_key`` (DAgger, ``--online-labels expert``): the buffer also stores that entry, the
+    action a loss learns where it differs from the executed one; the demonstrations' is their
+    ``"action"``. ``extra_capacity``: room for that many rollouts beside the dataset (when the
+    capacity is the dataset's)."""
     if not state.resuming:
         trajectories, lengths = load_offline_data(cfg, phases=phases, task=task, horizon=horizon, seed=seed,
                                                   collect_pixels=collect_pixels, log=log, progress=progress)
@@ -309,10 +315,13 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
                                                   min_scale=min_scale, fill=fill).state_dict()
         state["best_return"] = float(trajectories["reward"].sum(dim=(-2, -1)).max())
         if state["buffer_capacity"] is None:
-            state["buffer_capacity"] = int(trajectories.shape[0])
+            state["buffer_capacity"] = int(trajectories.shape[0]) + int(extra_capacity)
+        if target_key is not None:
+            trajectories.set(target_key, trajectories.get("action").clone())
     normalizer = StateNormalizer.from_state_dict(state["normalizer"])
     noise = StateNoise(state_noise, in_keys=["state"], seed=seed + 7919) if state_noise > 0 else None
-    buffer = make_buffer(state["buffer_capacity"], context_len, horizon, rtg_scale, keys=("state",), seed=seed,
+    keys = ("state",) if target_key is None else ("state", target_key)
+    buffer = make_buffer(state["buffer_capacity"], context_len, horizon, rtg_scale, keys=keys, seed=seed,
                          transform=chain(noise, normalizer), early_windows=early_windows, replacement=replacement)
     state.objects["buffer"] = buffer
     if not state.resuming:
