@@ -106,5 +106,5 @@ def test_expert_targets_label_a_rollout_beside_its_executed_actions():
     with pytest.raises(KeyError, match=r"expert_targets: the episode has no \['step_count'\]"):
         expert_targets(steps.exclude("step_count"), "ClothFoldDiagonalPinned")
     cloth_fold = _steps([4, 4])[0].set("action", torch.zeros(2, 4, 4))  # a diagonal fold's action size
-    with pytest.raises(ValueError, match=r"expert's actions have shape \(2, 4, 8\), the episode's 'action' \(2, 4, 4\)"):
+    with pytest.raises(ValueError, match=r"actions have shape \(2, 4, 8\), the episode's 'action' \(2, 4, 4\)"):
         expert_targets(cloth_fold, "ClothFold")
