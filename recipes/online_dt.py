@@ -140,8 +140,7 @@ def main(argv=None) -> dict:
             explore_env, handle, buffer, cfg.episodes_per_round, horizon=cfg.horizon, seed=cfg.seed + 1000 * (r + 1),
             policy_seed=cfg.seed, deterministic=cfg.exploration == "mean", add=not cfg.offline_control,
             collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1},
-            label=(lambda ep: expert_targets(ep, cfg.task)) if dagger else None,
-            keys=("state", "action", "expert_action") if dagger else ("state", "action"))
+            label=(lambda ep: expert_targets(ep, cfg.task)) if dagger else None)
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")

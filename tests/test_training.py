@@ -157,7 +157,7 @@ def test_online_rollouts_play_the_episodes_into_the_buffer_and_book_them():
             return TensorDictModule(lambda s: torch.full_like(s, 0.5), in_keys=["state"], out_keys=["action"])
 
     class Buffer:
-        online_fraction, added = 0.25, []
+        online_fraction, added, keys = 0.25, [], ("state", "action")
 
         def add_episodes(self, episodes, keys):
             self.added.append((len(list(episodes)), keys))

@@ -112,12 +112,11 @@ def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizo
                     policy_seed: int | None = None, deterministic: bool = True, add: bool = True,
                     collector: str = "sync", phases: PhaseTimer | None = None, workers: int = 1,
                     prefix: str = "online", extra: Mapping[str, Any] | None = None,
-                    label: Callable[[TensorDictBase], TensorDictBase] | None = None,
-                    keys: Sequence[str] = ("state", "action")) -> tuple[dict[str, Any], str]:
+                    label: Callable[[TensorDictBase], TensorDictBase] | None = None) -> tuple[dict[str, Any], str]:
     """One round of Online DT's data collection, a :func:`train_rounds` ``roll_out``: ``episodes``
     episodes of ``handle``'s policy (a :class:`~trakdis.policies.PolicyHandle`; mean actions if
     ``deterministic``) in ``env`` (reseeded with ``seed``), as the phase ``"<prefix> rollouts"`` of
-    ``phases`` (on ``workers`` processes), their entries ``keys`` added to ``buffer`` (a
+    ``phases`` (on ``workers`` processes), the entries ``buffer`` stores added to it (a
     :class:`~trakdis.data.TrajectoryReplayBuffer`; ``add=False``: the offline-only control), after
     ``label(episode)`` if given (e.g. :func:`~trakdis.data.expert_targets`, DAgger). Returns
     the metrics to log (``<prefix>/normalized_performance``, ``/return``, ``extra``, ``/kept``,
@@ -126,8 +125,10 @@ def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizo
     with phases.phase(f"{prefix} rollouts", episodes=episodes, workers=workers) if timed else contextlib.nullcontext():
         res = run_episodes(env, handle.make_policy(seed=policy_seed), episodes, max_steps=horizon,
                            deterministic=deterministic, keep_episodes=True, desc="rollout", seed=seed, collector=collector)
-    episodes = [label(ep) for ep in res.episodes] if add and label is not None else res.episodes
-    kept = buffer.add_episodes(episodes if add else (), keys=keys)
+    episodes = res.episodes if add else ()
+    if label is not None:
+        episodes = [label(ep) for ep in episodes]
+    kept = buffer.add_episodes(episodes, keys=buffer.keys)
     score, ret = float(res.final_performance.mean()), float(res.returns.mean())
     metrics = {f"{prefix}/normalized_performance": score, f"{prefix}/return": ret, **(extra or {}),
                f"{prefix}/kept": kept, f"{prefix}/buffer_online_fraction": buffer.online_fraction}
