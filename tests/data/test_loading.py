@@ -328,12 +328,13 @@ def test_student_buffer_keys_proprioception_and_noise(distill, proprio):
 def test_expert_versions_are_per_task(tmp_path):
     """A task whose expert changed refuses its older default datasets; another task keeps them."""
     cfg = DataConfig(root=str(tmp_path), episodes=3)
-    cloth = default_dataset_path(cfg, task="ClothFold", horizon=100, pixels=True)
-    _fake_dataset(cloth, 2)
-    assert ensure_dataset(cfg, task="ClothFold", horizon=100, seed=0, pixels=True) == cloth
-    task = "ClothFoldDiagonalUnpinned"
-    diagonal = default_dataset_path(cfg, task=task, horizon=100, pixels=True)
-    _fake_dataset(diagonal, 2, task=task)
-    with pytest.raises(DatasetError, match=rf"{diagonal.name}.*version 2 of the {task} scripted expert.*version "
-                                           rf"{expert_version(task)}"):
-        ensure_dataset(cfg, task=task, horizon=100, seed=0, pixels=True)
+    pinned = "ClothFoldDiagonalPinned"  # its expert is still version 2
+    kept = default_dataset_path(cfg, task=pinned, horizon=100, pixels=True)
+    _fake_dataset(kept, 2, task=pinned, render=render_version(pinned))
+    assert ensure_dataset(cfg, task=pinned, horizon=100, seed=0, pixels=True) == kept
+    for task in ("ClothFoldDiagonalUnpinned", "ClothFold"):  # version 3 since stops 38 and 50
+        old = default_dataset_path(cfg, task=task, horizon=100, pixels=True)
+        _fake_dataset(old, 2, task=task, render=render_version(task))
+        with pytest.raises(DatasetError, match=rf"{old.name}.*version 2 of the {task} scripted expert.*version "
+                                               rf"{expert_version(task)}"):
+            ensure_dataset(cfg, task=task, horizon=100, seed=0, pixels=True)

@@ -129,6 +129,25 @@ def test_aim_error_misplaces_the_source_corners_per_episode():
             ExpertPolicy(task, aim_error=bad)
 
 
+def test_close_radius_sets_where_a_picker_closes_on_a_corner_on_the_table():
+    """A picker 1.5 cm straight above its source corner (on the table): within a 2 cm close radius it closes and
+    carries; within 1 cm it keeps descending, open. The task's default is ``DEFAULT_CLOSE_RADIUS``."""
+    from trakdis.envs.experts import DEFAULT_CLOSE_RADIUS
+
+    state = ClothEnv(task="ClothFold").reset(seed=0)[0]["state"].astype(np.float64)
+    state[12:15] = state[3:6] + [0.0, 0.0, 0.015]  # picker 0 above its source corner c0N
+    state[15:18] = state[9:12]  # picker 1 on its corner cNN: holding
+    near = expert_action("ClothFold", state, 5, close_radius=0.02)
+    far = expert_action("ClothFold", state, 5, close_radius=0.01)
+    assert near[3] == 1.0 and far[3] == -1.0 and far[7] == near[7] == 1.0
+    np.testing.assert_allclose(far[:3], [0.0, 0.0, -0.015 / 0.06], atol=1e-6)  # down onto the corner
+    default = DEFAULT_CLOSE_RADIUS["ClothFold"]
+    np.testing.assert_array_equal(expert_action("ClothFold", state, 5), near if default > 0.015 else far)
+    for bad in (0.0, float("nan")):
+        with pytest.raises(ValueError, match="close_radius"):
+            ExpertPolicy("ClothFold", close_radius=bad)
+
+
 def test_grasp_lift_raises_a_corner_still_on_the_table_straight_up():
     """The unpinned fold's first carry step (``DEFAULT_GRASP_LIFT``): with the picker on its source corner and the
     corner on the table, the picker rises straight up by ``grasp_lift`` and closes; once the corner is lifted, the
@@ -151,7 +170,7 @@ def test_grasp_lift_raises_a_corner_still_on_the_table_straight_up():
     cloth = ClothEnv(task="ClothFold").reset(seed=0)[0]["state"].astype(np.float64)
     cloth[12:15] = cloth[3:6]  # picker 0 on its source corner c0N
     np.testing.assert_array_equal(expert_action("ClothFold", cloth, 5), expert_action("ClothFold", cloth, 5, grasp_lift=0.0))
-    assert expert_version("ClothFold") == expert_version("ClothFoldDiagonalPinned") == 2 and expert_version(task) == 3
+    assert expert_version("ClothFoldDiagonalPinned") == 2 and expert_version(task) == expert_version("ClothFold") == 3
     for bad in (-0.01, float("nan")):
         with pytest.raises(ValueError, match="grasp_lift"):
             expert_action(task, state, 5, grasp_lift=bad)
