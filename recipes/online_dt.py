@@ -86,9 +86,10 @@ def main(argv=None) -> dict:
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                               action_eps=dt_cfg.action_eps)
-    dagger = cfg.online_labels == "expert"  # the loss's target: the expert's action (the demonstrations': theirs)
-    if dagger:
-        loss.set_keys(action_target="expert_action")
+    # DAgger: the loss's target is the expert's action, stored beside the executed one (the demonstrations': theirs)
+    target = "expert_action" if cfg.online_labels == "expert" else None
+    if target:
+        loss.set_keys(action_target=target)
     updater = cfg.make_updater(loss, decay_steps=cfg.offline_updates, min_lr_fraction=cfg.min_lr_fraction)
     run.print(f"{cfg.task}: DT with {sum(p.numel() for p in actor.parameters()) / 1e6:.2f}M parameters "
               f"({dt_cfg.embed_dim}x{dt_cfg.n_layer}, K={dt_cfg.context_len}; action dims {list(dt_cfg.hidden_action_dims)} "
@@ -105,8 +106,8 @@ def main(argv=None) -> dict:
         context_len=cfg.model.context_len, rtg_scale=cfg.rtg_scale, min_scale=cfg.state_scale_floor,
         state_noise=cfg.state_noise, fill=OutOfViewFill.for_task(cfg.task) if cfg.mask_unseen_pickers else None,
         early_windows=cfg.early_windows, replacement=cfg.buffer_replacement, collect_pixels=cfg.collect_pixels,
-        log=run.print, progress=cfg.progress, target_key="expert_action" if dagger else None,
-        extra_capacity=cfg.online_rounds * cfg.episodes_per_round if dagger else 0)  # DAgger keeps every rollout
+        log=run.print, progress=cfg.progress, target_key=target,
+        extra_capacity=cfg.online_rounds * cfg.episodes_per_round if target else 0)  # DAgger keeps every rollout
     state.load()  # resumed: the updater and the buffer as checkpointed
     eval_rtg = cfg.eval_rtg if cfg.eval_rtg is not None else state["best_return"]
     explore_rtg = cfg.exploration_rtg if cfg.exploration_rtg is not None else eval_rtg
@@ -140,7 +141,7 @@ def main(argv=None) -> dict:
             explore_env, handle, buffer, cfg.episodes_per_round, horizon=cfg.horizon, seed=cfg.seed + 1000 * (r + 1),
             policy_seed=cfg.seed, deterministic=cfg.exploration == "mean", add=not cfg.offline_control,
             collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1},
-            label=(lambda ep: expert_targets(ep, cfg.task)) if dagger else None)
+            label=(lambda ep: expert_targets(ep, cfg.task, out_key=target)) if target else None)
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
