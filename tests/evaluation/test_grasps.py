@@ -32,21 +32,37 @@ def test_first_close_distance_and_lift():
     # 10 cm straight above the corner, closing at step 2 of 6 (6 cm away): a miss, the corner stays down
     miss = grasp_report(TASK, _episode([0.0, 0.0, 0.10], close_at=2))
     assert miss["picker0_first_close_cm"] == pytest.approx(6.0, abs=1e-4) and miss["picker0_corner_lifted"] is False
+    assert miss["picker0_first_close_step"] == 2 and math.isnan(miss["picker0_last_release_step"])
+    # c00 ends where it started, its target cNN 30 cm away in x and y
+    assert miss["picker0_placement_cm"] == pytest.approx(30.0 * math.sqrt(2.0), abs=1e-3)
     # closing on the corner (step 5: distance 0) and the corner lifted 10 cm
     hit = grasp_report(TASK, _episode([0.0, 0.0, 0.10], close_at=5, lift_cm=10.0))
     assert hit["picker0_first_close_cm"] == pytest.approx(0.0, abs=1e-4) and hit["picker0_corner_lifted"] is True
     never = grasp_report(TASK, _episode([0.0, 0.0, 0.10], close_at=None, lift_cm=1.0))
     assert math.isnan(never["picker0_first_close_cm"]) and never["picker0_corner_lifted"] is False
+    assert math.isnan(never["picker0_first_close_step"])
     line = summarize_grasps(TASK, [miss, hit, never])
     assert line == (f"grasps: 1 of 2 first closes farther than {FAR_CLOSE_CM:g} cm from their corner; "
-                    "a source corner never lifted in 2 of 3 episodes")
+                    "a source corner never lifted in 2 of 3 episodes; median first close at step 3.5, "
+                    "source corners end 42.4 cm from their targets (median)")
+
+
+def test_release_step_and_placement():
+    # closed at steps 1-2, opened at 3, closed again at 4, opened at 5: the last release is step 5
+    ep = _episode([0.0, 0.0, 0.10], close_at=1)
+    ep["action"][[3, 5], 3] = -1.0
+    # the source corner carried onto its target (cNN) by the last step, 1 cm short in x
+    ep["state"][-1, 0:2] = torch.tensor([0.29, 0.30])
+    report = grasp_report(TASK, ep)
+    assert report["picker0_first_close_step"] == 1 and report["picker0_last_release_step"] == 5
+    assert report["picker0_placement_cm"] == pytest.approx(1.0, abs=1e-4)
 
 
 def test_two_pickers_and_bad_input():
     ep = TensorDict({"state": torch.zeros(4, 18), "action": torch.ones(4, 8)}, batch_size=[4])
     report = grasp_report("ClothFold", ep)
-    assert set(report) == {"picker0_first_close_cm", "picker0_corner_lifted", "picker1_first_close_cm",
-                           "picker1_corner_lifted"}
+    assert set(report) == {f"picker{p}_{k}" for p in (0, 1) for k in (
+        "first_close_cm", "first_close_step", "corner_lifted", "last_release_step", "placement_cm")}
     assert grasp_report("ClothFold", TensorDict({"action": torch.ones(4, 8)}, batch_size=[4])) is None
     with pytest.raises(ValueError, match=r"state \[T, 18\]"):
         grasp_report("ClothFold", TensorDict({"state": torch.zeros(4, 15), "action": torch.ones(4, 8)}, batch_size=[4]))

@@ -12,6 +12,7 @@ that step and how wrong that belief was: the encoder's error at the decision tha
 from __future__ import annotations
 
 import math
+import statistics
 from typing import Sequence
 
 from tensordict import TensorDictBase
@@ -30,9 +31,12 @@ LIFTED_CM = 3.0
 def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] | None:
     """Per picker ``p``: ``picker{p}_first_close_cm`` (distance in cm between the picker and its
     source corner at the first step whose grasp command is > 0, the env's threshold; NaN if it never
-    closed) and ``picker{p}_corner_lifted`` (whether its source corner ever rose ``LIFTED_CM`` above
-    its target corner). ``episode``: ``[T]`` steps with ``"state"`` (the true reduced state) and
-    ``"action"``. None if the episode carries no ``"state"``.
+    closed), ``picker{p}_first_close_step`` (that step's index), ``picker{p}_corner_lifted`` (whether
+    its source corner ever rose ``LIFTED_CM`` above its target corner), ``picker{p}_last_release_step``
+    (the last step whose command opened a closed picker; NaN if it never opened after a close) and
+    ``picker{p}_placement_cm`` (the horizontal distance in cm between its source corner and its target
+    corner at the episode's last step: where the fold put the corner). ``episode``: ``[T]`` steps with
+    ``"state"`` (the true reduced state) and ``"action"``. None if the episode carries no ``"state"``.
 
     With ``"state_estimate"`` (``[T, state_dim]``, what the policy read) also, at that first close,
     ``picker{p}_close_estimate_cm`` (the picker-to-corner distance the estimate showed) and
@@ -62,20 +66,24 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
         closes = closed[:, p].nonzero()
         t = int(closes[0, 0]) if len(closes) else None
         out[f"picker{p}_first_close_cm"] = math.nan if t is None else 100.0 * float(offset[t, p].norm())
+        out[f"picker{p}_first_close_step"] = math.nan if t is None else float(t)
         if offset_hat is not None:
             out[f"picker{p}_close_estimate_cm"] = math.nan if t is None else 100.0 * float(offset_hat[t, p].norm())
             out[f"picker{p}_close_offset_error_cm"] = (
                 math.nan if t is None else 100.0 * float((offset_hat[t, p] - offset[t, p]).norm()))
         rise = corners[:, p, 2] - targets[:, p, 2]
         out[f"picker{p}_corner_lifted"] = bool(rise.max() * 100.0 >= LIFTED_CM)
+        opens = (closed[:-1, p] & ~closed[1:, p]).nonzero()
+        out[f"picker{p}_last_release_step"] = float(opens[-1, 0]) + 1.0 if len(opens) else math.nan
+        out[f"picker{p}_placement_cm"] = 100.0 * float((corners[-1, p, :2] - targets[-1, p, :2]).norm())
     return out
 
 
 def summarize_grasps(task: str, reports: Sequence[dict[str, float | bool]]) -> str:
     """One line over the episodes' :func:`grasp_report` s: the first closes farther than
     ``FAR_CLOSE_CM`` from their corner (and, for a policy that read an estimate, how many of those
-    the estimate showed within that distance: the encoder's misses), and the episodes with a source
-    corner never lifted."""
+    the estimate showed within that distance: the encoder's misses), the episodes with a source
+    corner never lifted, the median first-close step and the median placement."""
     pickers = range(task_spec(task).num_pickers)
     closes = [(r[f"picker{p}_first_close_cm"], r.get(f"picker{p}_close_estimate_cm")) for r in reports for p in pickers]
     closed = [(d, e) for d, e in closes if not math.isnan(d)]
@@ -84,5 +92,10 @@ def summarize_grasps(task: str, reports: Sequence[dict[str, float | bool]]) -> s
     believed = ""
     if far and all(e is not None for e in far):
         believed = f" ({sum(e <= FAR_CLOSE_CM for e in far)} of them within it in the estimate)"
+    steps = [r[f"picker{p}_first_close_step"] for r in reports for p in pickers]
+    steps = [s for s in steps if not math.isnan(s)]
+    placed = [r[f"picker{p}_placement_cm"] for r in reports for p in pickers]
+    when = f"median first close at step {statistics.median(steps):g}, " if steps else ""
     return (f"grasps: {len(far)} of {len(closed)} first closes farther than {FAR_CLOSE_CM:g} cm from their "
-            f"corner{believed}; a source corner never lifted in {unlifted} of {len(reports)} episodes")
+            f"corner{believed}; a source corner never lifted in {unlifted} of {len(reports)} episodes; "
+            f"{when}source corners end {statistics.median(placed):.1f} cm from their targets (median)")
