@@ -2,6 +2,7 @@
 expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in TraKDis.
 
     python recipes/online_dt.py                       # ClothFold
+    python recipes/online_dt.py --preset cpu          # the strongest teacher measured on a 2-core CPU (minutes)
     python recipes/online_dt.py --preset paper        # the paper's model and optimiser (slow on a CPU)
     python recipes/online_dt.py --resume              # continue the latest run after a kill
 
@@ -9,6 +10,7 @@ Steps, outputs (``runs/online_dt/<name>/``), options and measurements: docs/reci
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
@@ -22,7 +24,7 @@ from trakdis.modules import DTConfig, make_dt_actor, recipe_hidden_action_dims
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle
-from trakdis.training import online_rollouts, train_rounds, train_updates
+from trakdis.training import SnapshotSelection, online_rollouts, train_rounds, train_updates
 from trakdis.transforms import OutOfViewFill
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -57,6 +59,11 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     online_labels: Literal["executed", "expert"] = "executed"
     """what the DT learns on its rollouts: the actions it executed (Online DT), or the scripted expert's
     action at each state it reached (DAgger; its context still reads the executed ones)"""
+    select_episodes: int = 0
+    """early stopping: train-split episodes that the offline teacher and the teacher every --select-every rounds
+    (and after the last) play; the one kept beats the earlier ones by --select-margin standard errors (0: the last)"""
+    select_every: int = 4  # rounds between the snapshots --select-episodes compares
+    select_margin: float = 1.0  # standard errors of the paired difference a later snapshot must win by
     eval_rtg: float | None = None  # initial return-to-go at evaluation (default: the offline data's best return)
     expert_episodes: int = 10  # the scripted expert on the first N evaluation episodes, for comparison (0: none)
     expert_cache: bool = True  # reuse the expert's evaluation cached in <data.root>/expert_scores/
@@ -75,7 +82,10 @@ PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule
     "model": dict(DTConfig.PAPER_SIZES), "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000,
     "batch_size": 256, "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
     "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
-    "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50}}
+    "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50},
+    # issue 12's teacher on this 2-core CPU: 5x the demonstrations, as many passes over them, DAgger online
+    "cpu": {"data": {"episodes": 200}, "offline_updates": 6000, "online_labels": "expert", "eval_episodes": 100,
+            "select_episodes": 30, "select_every": 8}}
 
 
 def main(argv=None) -> dict:
@@ -115,9 +125,15 @@ def main(argv=None) -> dict:
                           target_return=eval_rtg, rtg_scale=cfg.rtg_scale, normalizer=normalizer)
     evals, eval_env = cfg.eval_protocol(cfg.task, cfg.horizon, seed=cfg.seed, policy_seed=cfg.seed), cfg.make_env(handle)
     explore_env = cfg.make_env(handle, "train", target_return=explore_rtg) if state["rounds"] < cfg.online_rounds else None
+    # early stopping: the snapshots play the same train-split episodes, configurations no evaluation plays
+    picks = dataclasses.replace(evals, episodes=cfg.select_episodes, seed=evals.seed + 10_000)
+    select_env = cfg.make_env(handle, "train") if cfg.select_episodes and cfg.online_rounds else None
+    selection = SnapshotSelection(actor, lambda r: picks.run(
+        run, handle, select_env, step=state["updates"], tag=f"selection: teacher after round {r}", prefix="selection",
+        split="train").final_performance, state, margin=cfg.select_margin)
     sample = lambda: buffer.sample(cfg.batch_size).to(cfg.device)  # noqa: E731
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
-    with RunEnvs(phases, eval_env, explore_env, evals=evals) as envs:  # closes them, cancels unfinished evaluations
+    with RunEnvs(phases, eval_env, explore_env, select_env, evals=evals) as envs:  # closes them, cancels unfinished evaluations
         if state["expert_eval"] is None:  # 2. the scripted expert on the same episodes
             evals.expert_scores(run, eval_env, phases, cache_root=cfg.data.root, use_cache=cfg.expert_cache,
                                 background=cfg.background_eval, episodes=cfg.expert_episodes,
@@ -142,6 +158,14 @@ def main(argv=None) -> dict:
             policy_seed=cfg.seed, deterministic=cfg.exploration == "mean", add=not cfg.offline_control,
             collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1},
             label=(lambda ep: expert_targets(ep, cfg.task, out_key=target)) if target else None)
+        if select_env is not None:  # the offline teacher: kept unless a later snapshot is measurably better
+            selection.consider(0)
+
+        def after_round(r: int):  # every round but the last
+            if select_env is not None and r % cfg.select_every == 0:
+                selection.consider(r)
+            if cfg.eval_every and r % cfg.eval_every == 0:
+                evals.evaluate(run, handle, eval_env, phases, "mid-run", step=state["updates"], tag=f"after round {r}")
         if state["rounds"] < cfg.online_rounds:
             run.print(f"online fine-tuning: {cfg.online_rounds} rounds x {cfg.episodes_per_round} episodes, "
                       f"exploration return-to-go {explore_rtg:.3f} (evaluation: {eval_rtg:.3f})")
@@ -149,17 +173,24 @@ def main(argv=None) -> dict:
             if not train_rounds(run, updater, sample, state=state, rounds=cfg.online_rounds, model=actor,
                                 updates_per_round=cfg.updates_per_round, roll_out=roll_out, phases=phases,
                                 phase="online updates", log_extra={"phase": 1}, loss_key="train/loss_nll",
-                                stop_key="updates", eval_every=cfg.eval_every, evaluate=lambda r: evals.evaluate(
-                                    run, handle, eval_env, phases, "mid-run", step=state["updates"], tag=f"after round {r}")):
+                                stop_key="updates", eval_every=1, evaluate=after_round):
                 return dict(state)
             envs.close(explore_env)  # its workers' cores go to the final evaluation
-        if cfg.online_rounds == 0:  # no update since the offline teacher's evaluation
-            state.update(final_eval=state["offline_eval"], final_scores=state["offline_scores"])
-        else:
+        kept = cfg.online_rounds
+        if select_env is not None:
+            selection.consider(cfg.online_rounds)
+            kept = selection.restore()
+            run.print(f"selection: the teacher after round {kept} is kept (train-split scores by round: " + ", ".join(
+                f"{r} {v:.3f}" for r, v in selection.means().items()) + ")")
+        if kept > 0:
             evals.evaluate(run, handle, eval_env, phases, "final teacher", step=state["updates"],
-                           tag="after online fine-tuning", on_scores=record("final"))
+                           tag="after online fine-tuning" + (f" (round {kept}, kept)" if kept < cfg.online_rounds else ""),
+                           on_scores=record("final"))
         evals.finish_pending(run, phases)  # the offline teacher's and the expert's background evaluations
-    handle.save(run.dir / "policy.pt", dt_cfg)  # 5. save: the policy, the checkpoint, the curves, the phases' times
+        if kept == 0:  # the offline teacher (no online round, or kept by the selection): its evaluation stands
+            state.update(final_eval=state["offline_eval"], final_scores=state["offline_scores"])
+    handle.save(run.dir / "policy.pt", dt_cfg, extra={"selected_round": kept, "selection_scores": selection.means()}
+                if select_env is not None else None)  # 5. save: the policy, the checkpoint, the curves, the phases' times
     state.finish(columns=("train/loss_nll", "train/entropy", "online/normalized_performance", "eval/normalized_performance",
                           "eval_expert/normalized_performance"), extra={"num_envs": cfg.num_envs, "parallel": cfg.parallel})
     summary = {"expert": state["expert_eval"], "offline": state["offline_eval"], "online": state["final_eval"]}

@@ -133,12 +133,22 @@ def test_online_dt_damaged_expert_cache_is_an_error_naming_it(workdir, dataset):
 
 
 def test_online_dt_offline_control(workdir, dataset):
-    """--offline-control: the same rollouts, updates and evaluations, but no rollout enters the buffer."""
+    """--offline-control: the same rollouts, updates and evaluations, but no rollout enters the buffer. With
+    --select-episodes (early stopping) the offline teacher and round 1 play the same train-split episodes and
+    the kept one is the final teacher: its weights in policy.pt, its scores the final ones."""
     run_recipe(workdir, "online_dt", *online_dt_args("control", "--offline-control", "--online-rounds", 1,
-                                                     "--expert-episodes", 0, "--online-lr", 1e-4, "--state-noise", 0.01))
+                                                     "--expert-episodes", 0, "--online-lr", 1e-4, "--state-noise", 0.01,
+                                                     "--select-episodes", 2, "--select-every", 1))
     run_dir = workdir / "runs" / "online_dt" / "control"
     ck = load_checkpoint(run_dir / "checkpoint.pt")
     assert ck["counters"]["rounds"] == 1 and ck["buffer"]["num_online_added"] == 0
+    selection, policy = ck["counters"]["selection"], load_checkpoint(run_dir / "policy.pt")
+    assert sorted(selection["scores"]) == [0, 1] and all(len(v) == 2 for v in selection["scores"].values())
+    assert policy["selected_round"] == selection["best"] and set(policy["selection_scores"]) == {0, 1}
+    for k, v in selection["state_dict"].items():
+        assert torch.equal(policy["actor"][k], v), k
+    if selection["best"] == 0:  # the offline teacher kept: its evaluation is the final one
+        assert ck["counters"]["final_scores"] == ck["counters"]["offline_scores"]
     assert ck["counters"]["expert_eval"] is None  # --expert-episodes 0: the expert not evaluated
     frame = read_log(run_dir)
     assert frame["online/normalized_performance"].notna().sum() == 1
@@ -400,6 +410,10 @@ def test_paper_preset_config():
     assert cfg.data.episodes == 4  # explicit flags win over the preset
     dt = cfg.model.for_task(18, 8, horizon=100)
     assert (dt.embed_dim, dt.n_head, dt.context_len, dt.dropout, dt.attn_dropout) == (256, 16, 30, 0.1, 0.1)
+    cfg = parse_config(module.OnlineDTConfig, ["--preset", "cpu"], presets=module.PRESETS)
+    assert (cfg.data.episodes, cfg.offline_updates, cfg.online_labels, cfg.eval_episodes) == (200, 6000, "expert", 100)
+    assert (cfg.select_episodes, cfg.select_every) == (30, 8)
+    assert cfg.model == module.OnlineDTConfig().model  # the default model
     module = load_recipe("distill")
     cfg = parse_config(module.DistillConfig, ["--preset", "paper"], presets=module.PRESETS)
     assert cfg.rounds == 60 and cfg.optimizer == "lamb"
