@@ -83,7 +83,8 @@ PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule
     "batch_size": 256, "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
     "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
     "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50},
-    # issue 12's teacher on this 2-core CPU: 5x the demonstrations, about as many passes over them (19 against 24), DAgger online, early stopping
+    # issue 12's teacher on this 2-core CPU: 5x the demonstrations, about as many passes over them (19 against 24),
+    # DAgger online, early stopping between the offline and the final teacher
     "cpu": {"data": {"episodes": 200}, "offline_updates": 6000, "online_labels": "expert", "eval_episodes": 100,
             "select_episodes": 30, "select_every": 8}}
 
