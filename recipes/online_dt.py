@@ -131,7 +131,7 @@ def main(argv=None) -> dict:
     select_env = cfg.make_env(handle, "train") if cfg.select_episodes and cfg.online_rounds else None
     selection = SnapshotSelection(actor, lambda r: picks.run(
         run, handle, select_env, step=state["updates"], tag=f"selection: teacher after round {r}", prefix="selection",
-        split="train").final_performance, state, margin=cfg.select_margin)
+        split="train").final_performance, state, margin=cfg.select_margin) if select_env is not None else None
     sample = lambda: buffer.sample(cfg.batch_size).to(cfg.device)  # noqa: E731
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     with RunEnvs(phases, eval_env, explore_env, select_env, evals=evals) as envs:  # closes them, cancels unfinished evaluations
@@ -159,11 +159,11 @@ def main(argv=None) -> dict:
             policy_seed=cfg.seed, deterministic=cfg.exploration == "mean", add=not cfg.offline_control,
             collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1},
             label=(lambda ep: expert_targets(ep, cfg.task, out_key=target)) if target else None)
-        if select_env is not None:  # the offline teacher: kept unless a later snapshot is measurably better
+        if selection is not None:  # the offline teacher: kept unless a later snapshot is measurably better
             selection.consider(0)
 
         def after_round(r: int):  # every round but the last
-            if select_env is not None and r % cfg.select_every == 0:
+            if selection is not None and r % cfg.select_every == 0:
                 selection.consider(r)
             if cfg.eval_every and r % cfg.eval_every == 0:
                 evals.evaluate(run, handle, eval_env, phases, "mid-run", step=state["updates"], tag=f"after round {r}")
@@ -178,7 +178,7 @@ def main(argv=None) -> dict:
                 return dict(state)
             envs.close(explore_env)  # its workers' cores go to the final evaluation
         kept = cfg.online_rounds
-        if select_env is not None:
+        if selection is not None:
             selection.consider(cfg.online_rounds)
             kept = selection.restore()
             run.print(f"selection: the teacher after round {kept} is kept (train-split scores by round: " + ", ".join(
@@ -191,7 +191,7 @@ def main(argv=None) -> dict:
         if kept == 0:  # the offline teacher (no online round, or kept by the selection): its evaluation stands
             state.update(final_eval=state["offline_eval"], final_scores=state["offline_scores"])
     handle.save(run.dir / "policy.pt", dt_cfg, extra={"selected_round": kept, "selection_scores": selection.means()}
-                if select_env is not None else None)  # 5. save: the policy, the checkpoint, the curves, the phases' times
+                if selection is not None else None)  # 5. save: the policy, the checkpoint, the curves, the phases' times
     state.finish(columns=("train/loss_nll", "train/entropy", "online/normalized_performance", "eval/normalized_performance",
                           "eval_expert/normalized_performance"), extra={"num_envs": cfg.num_envs, "parallel": cfg.parallel})
     summary = {"expert": state["expert_eval"], "offline": state["offline_eval"], "online": state["final_eval"]}
