@@ -168,11 +168,10 @@ def main(argv=None) -> dict:
     # Early stopping: the snapshots play the same train-split episodes (configurations no evaluation
     # plays); the weight copy is kept unless a later snapshot beats it measurably (docs: the cause).
     select_episodes = SELECT_EPISODES[task] if cfg.select_episodes is None else cfg.select_episodes
-    picks = dataclasses.replace(evals, episodes=select_episodes, seed=evals.seed + 10_000)
     select_env = cfg.make_env(student_handle, "train") if select_episodes and cfg.rounds else None
-    selection = SnapshotSelection(student, lambda r: picks.run(
-        run, student_handle, select_env, step=r * cfg.updates_per_round, tag=f"selection: student after round {r}",
-        prefix="selection", keep_mode=student, split="train").final_performance, state, margin=cfg.select_margin)
+    selection = SnapshotSelection.on_episodes(run, student_handle, evals, select_env, state, episodes=select_episodes,
+                                              module=student, every=cfg.select_every, margin=cfg.select_margin,
+                                              name="student")
     # its rollouts carry the estimate too (fused the student's way)
     teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder, picker_odometry=odometry)
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
@@ -204,8 +203,8 @@ def main(argv=None) -> dict:
             return {**metrics, "round": r + 1}, ", ".join(parts)
 
         def after_round(r: int):  # every round but the last
-            if select_env is not None and r % cfg.select_every == 0:
-                selection.consider(r)
+            if select_env is not None:
+                selection.after_round(r)
             if cfg.eval_every and r % cfg.eval_every == 0:
                 state["round_evals"][r] = evaluate(f"student after round {r}")
 
@@ -219,10 +218,7 @@ def main(argv=None) -> dict:
         # --rounds 0 (the weight copy alone): the policy did not change, its evaluation stands.
         final = evaluate("student after distillation") if cfg.rounds > 0 else state["initial_eval"]
         if select_env is not None:
-            selection.consider(cfg.rounds)
-            best = selection.restore()
-            run.print(f"selection: the student after round {best} is kept (train-split scores by round: " + ", ".join(
-                f"{r} {v:.3f}" for r, v in selection.means().items()) + ")")
+            best = selection.finish(cfg.rounds, run.print)
             if best != cfg.rounds and cfg.eval_episodes:
                 final = state["initial_eval"] if best == 0 else state["round_evals"].get(best)
                 if final is None:
@@ -235,8 +231,7 @@ def main(argv=None) -> dict:
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
                                "state_noise": cfg.state_noise, "expert_coef": expert_coef,
                                "proprio_dims": list(proprio_dims), "picker_odometry": odometry,
-                               "select_episodes": select_episodes, "selected_round": selection.record["best"],
-                               "selection_scores": selection.means()})
+                               "select_episodes": select_episodes, **selection.summary()})
     state.finish()
     scores = [f"{k} {'not evaluated' if state[v] is None else format(state[v], '.3f')}"
               for k, v in (("teacher", "teacher_eval"), ("student before", "initial_eval"), ("after", "final_eval"))]

@@ -10,7 +10,6 @@ Steps, outputs (``runs/online_dt/<name>/``), options and measurements: docs/reci
 """
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
@@ -127,11 +126,10 @@ def main(argv=None) -> dict:
     evals, eval_env = cfg.eval_protocol(cfg.task, cfg.horizon, seed=cfg.seed, policy_seed=cfg.seed), cfg.make_env(handle)
     explore_env = cfg.make_env(handle, "train", target_return=explore_rtg) if state["rounds"] < cfg.online_rounds else None
     # early stopping: the snapshots play the same train-split episodes, configurations no evaluation plays
-    picks = dataclasses.replace(evals, episodes=cfg.select_episodes, seed=evals.seed + 10_000)
     select_env = cfg.make_env(handle, "train") if cfg.select_episodes and cfg.online_rounds else None
-    selection = SnapshotSelection(actor, lambda r: picks.run(
-        run, handle, select_env, step=state["updates"], tag=f"selection: teacher after round {r}", prefix="selection",
-        split="train").final_performance, state, margin=cfg.select_margin) if select_env is not None else None
+    selection = SnapshotSelection.on_episodes(run, handle, evals, select_env, state, episodes=cfg.select_episodes,
+                                              every=cfg.select_every, margin=cfg.select_margin, name="teacher") \
+        if select_env is not None else None
     sample = lambda: buffer.sample(cfg.batch_size).to(cfg.device)  # noqa: E731
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     with RunEnvs(phases, eval_env, explore_env, select_env, evals=evals) as envs:  # closes them, cancels unfinished evaluations
@@ -163,8 +161,8 @@ def main(argv=None) -> dict:
             selection.consider(0)
 
         def after_round(r: int):  # every round but the last
-            if selection is not None and r % cfg.select_every == 0:
-                selection.consider(r)
+            if selection is not None:
+                selection.after_round(r)
             if cfg.eval_every and r % cfg.eval_every == 0:
                 evals.evaluate(run, handle, eval_env, phases, "mid-run", step=state["updates"], tag=f"after round {r}")
         if state["rounds"] < cfg.online_rounds:
@@ -177,12 +175,7 @@ def main(argv=None) -> dict:
                                 stop_key="updates", eval_every=1, evaluate=after_round):
                 return dict(state)
             envs.close(explore_env)  # its workers' cores go to the final evaluation
-        kept = cfg.online_rounds
-        if selection is not None:
-            selection.consider(cfg.online_rounds)
-            kept = selection.restore()
-            run.print(f"selection: the teacher after round {kept} is kept (train-split scores by round: " + ", ".join(
-                f"{r} {v:.3f}" for r, v in selection.means().items()) + ")")
+        kept = selection.finish(cfg.online_rounds, run.print) if selection is not None else cfg.online_rounds
         if kept > 0:
             evals.evaluate(run, handle, eval_env, phases, "final teacher", step=state["updates"],
                            tag="after online fine-tuning" + (f" (round {kept}, kept)" if kept < cfg.online_rounds else ""),
@@ -190,8 +183,8 @@ def main(argv=None) -> dict:
         evals.finish_pending(run, phases)  # the offline teacher's and the expert's background evaluations
         if kept == 0:  # the offline teacher (no online round, or kept by the selection): its evaluation stands
             state.update(final_eval=state["offline_eval"], final_scores=state["offline_scores"])
-    handle.save(run.dir / "policy.pt", dt_cfg, extra={"selected_round": kept, "selection_scores": selection.means()}
-                if selection is not None else None)  # 5. save: the policy, the checkpoint, the curves, the phases' times
+    # 5. save: the policy, the checkpoint, the curves, the phases' times
+    handle.save(run.dir / "policy.pt", dt_cfg, extra=selection.summary() if selection is not None else None)
     state.finish(columns=("train/loss_nll", "train/entropy", "online/normalized_performance", "eval/normalized_performance",
                           "eval_expert/normalized_performance"), extra={"num_envs": cfg.num_envs, "parallel": cfg.parallel})
     summary = {"expert": state["expert_eval"], "offline": state["offline_eval"], "online": state["final_eval"]}

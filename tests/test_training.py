@@ -222,3 +222,49 @@ def test_snapshot_selection_of_nothing_keeps_the_module():
     before = module.weight.clone()
     assert SnapshotSelection(module, lambda step: [0.0], {}).restore() is None
     assert torch.equal(module.weight, before)
+
+
+def test_snapshot_selection_rounds_and_episodes():
+    """on_episodes scores the handle with the protocol reseeded past its own seed, at the run's update counter;
+    after_round scores every `every` rounds; finish scores the last, restores the kept one and logs it."""
+    import dataclasses
+
+    import numpy as np
+
+    @dataclasses.dataclass
+    class Protocol:  # the part of EvalProtocol that the selection uses
+        seed: int = 7
+        episodes: int = 100
+        calls: list = dataclasses.field(default_factory=list)
+
+        def run(self, run, handle, env, **kw):
+            self.calls.append((self.seed, self.episodes, env, kw))
+            value = {0: 0.0, 2: 1.0, 4: 0.5, 5: 0.2}[int(handle.actor.weight[0, 0])]
+            scores = np.full(self.episodes, value) + np.arange(self.episodes) * 0.01
+            return type("Res", (), {"final_performance": scores})
+
+    module = torch.nn.Linear(2, 1)
+    handle = type("Handle", (), {"actor": module})()
+    protocol, state, lines = Protocol(), {"updates": 0}, []
+    with pytest.raises(ValueError, match="every"):
+        SnapshotSelection(module, lambda step: [0.0], {}, every=0)
+    selection = SnapshotSelection.on_episodes(None, handle, protocol, "env", state, episodes=3, every=2, name="teacher")
+    for r in range(6):
+        with torch.no_grad():
+            module.weight.fill_(float(r))
+        state["updates"] = 10 * r
+        if r == 0:
+            selection.consider(0)
+        elif r < 5:
+            selection.after_round(r)
+    assert selection.finish(5, lines.append) == 2  # rounds 0, 2, 4 and the last (5) scored; round 2 the best
+    calls = protocol.calls  # the copy's (dataclasses.replace shares the list)
+    assert protocol.seed == 7 and {c[:3] for c in calls} == {(10_007, 3, "env")}
+    assert [c[3]["step"] for c in calls] == [0, 20, 40, 50] and calls[1][3]["tag"] == "selection: teacher after round 2"
+    assert all(c[3]["split"] == "train" and c[3]["prefix"] == "selection" and c[3]["keep_mode"] is module
+               for c in calls)
+    assert torch.equal(module.weight, torch.full((1, 2), 2.0))
+    assert lines == ["selection: the teacher after round 2 is kept (train-split scores by round: 0 0.010, 2 1.010, "
+                     "4 0.510, 5 0.210)"]
+    assert selection.summary() == {"selected_round": 2, "selection_scores": selection.means()}
+

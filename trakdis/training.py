@@ -16,6 +16,7 @@ the final evaluation never plays (:class:`SnapshotSelection`).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from typing import Any, Callable, Iterator, Mapping, Sequence, TypeVar
 
 import numpy as np
@@ -213,12 +214,38 @@ class SnapshotSelection:
         selection.consider(0)            # the weight copy
         ...                              # every few rounds: selection.consider(round)
         kept = selection.restore()       # the step whose weights are now loaded
+
+    A recipe's rounds (both recipes' early stopping: :meth:`on_episodes`, :meth:`after_round`, :meth:`finish`):
+
+        selection = SnapshotSelection.on_episodes(run, handle, evals, train_env, state, episodes=30, every=4)
+        selection.consider(0)            # before the first round
+        ...                              # after round r: selection.after_round(r)
+        kept = selection.finish(rounds, run.print)
     """
 
     def __init__(self, module: nn.Module, score: Callable[[int], Sequence[float]], state: dict, *,
-                 margin: float = 1.0, key: str = "selection"):
+                 margin: float = 1.0, every: int = 1, name: str = "snapshot", key: str = "selection"):
+        if every < 1:
+            raise ValueError(f"every must be >= 1 (rounds between the scored snapshots), got {every}")
         self.module, self.score, self.state, self.margin, self.key = module, score, state, margin, key
+        self.every, self.name = every, name
         state.setdefault(key, {"scores": {}, "best": None, "state_dict": None})
+
+    @classmethod
+    def on_episodes(cls, run: Run, handle: Any, protocol: Any, env: Any, state: dict, *, episodes: int,
+                    module: nn.Module | None = None, every: int = 1, margin: float = 1.0, name: str = "policy",
+                    split: str = "train", seed_offset: int = 10_000, step_key: str = "updates") -> SnapshotSelection:
+        """Score ``handle`` (a :class:`~trakdis.policies.PolicyHandle` acting with ``module``, default its
+        actor) on ``episodes`` episodes of ``env`` (configurations of ``split`` that the final evaluation never
+        plays) with ``protocol`` (an :class:`~trakdis.evaluation.EvalProtocol`) reseeded ``seed_offset`` past its
+        own seed, the same episodes for every snapshot; each logged as ``selection/`` at ``state[step_key]``."""
+        picks = dataclasses.replace(protocol, episodes=episodes, seed=protocol.seed + seed_offset)
+        module = handle.actor if module is None else module
+
+        def score(r: int) -> Sequence[float]:
+            return picks.run(run, handle, env, step=state[step_key], tag=f"selection: {name} after round {r}",
+                             prefix="selection", keep_mode=module, split=split).final_performance
+        return cls(module, score, state, margin=margin, every=every, name=name)
 
     @property
     def record(self) -> dict:
@@ -249,3 +276,21 @@ class SnapshotSelection:
         if rec["state_dict"] is not None:
             self.module.load_state_dict(rec["state_dict"])
         return rec["best"]
+
+    def after_round(self, r: int) -> None:
+        """Score the snapshot after round ``r`` when ``r`` is a multiple of ``every``."""
+        if r % self.every == 0:
+            self.consider(r)
+
+    def finish(self, rounds: int, log: Callable[[str], None] = print) -> int | None:
+        """Score the snapshot after the last round (``rounds``), restore the kept one and log which; returns its
+        round."""
+        self.consider(rounds)
+        kept = self.restore()
+        log(f"selection: the {self.name} after round {kept} is kept (train-split scores by round: "
+            + ", ".join(f"{r} {v:.3f}" for r, v in self.means().items()) + ")")
+        return kept
+
+    def summary(self) -> dict:
+        """``selected_round`` and ``selection_scores`` (mean by round), for a saved policy's extras."""
+        return {"selected_round": self.record["best"], "selection_scores": self.means()}
