@@ -180,3 +180,28 @@ def test_grasp_lift_raises_a_corner_still_on_the_table_straight_up():
         ExpertPolicy(task, noise=float("nan"))
     with pytest.raises(TypeError, match="grasp_lfit"):
         ExpertPolicy(task, grasp_lfit=0.01)
+
+
+def test_approach_slope_descends_as_the_picker_closes_in():
+    """A picker 1.5 cm beside and 2.4 cm above its source corner (on the table), open: with approach_slope 0 it
+    moves sideways at 2 cm above the corner (it descends only once within 8 mm); with 0.5 it also descends, to
+    0.75 cm above it; far from the corner both aim 2 cm above it. The task's default is DEFAULT_APPROACH_SLOPE."""
+    from trakdis.envs.experts import DEFAULT_APPROACH_SLOPE
+
+    state = ClothEnv(task="ClothFold").reset(seed=0)[0]["state"].astype(np.float64)
+    state[12:15] = state[3:6] + [0.015, 0.0, 0.024]  # picker 0 beside and above its source corner c0N
+    state[15:18] = state[9:12]  # picker 1 on its corner cNN: holding
+    flat = expert_action("ClothFold", state, 5, approach_slope=0.0)
+    cone = expert_action("ClothFold", state, 5, approach_slope=0.5)
+    np.testing.assert_allclose(flat[:4], [-0.015 / 0.06, 0.0, -0.004 / 0.06, -1.0], atol=1e-6)
+    np.testing.assert_allclose(cone[:4], [-0.015 / 0.06, 0.0, -0.0165 / 0.06, -1.0], atol=1e-6)
+    assert cone[7] == flat[7] == 1.0
+    state[12:15] = state[3:6] + [0.1, 0.0, 0.05]  # far: 2 cm above the corner either way
+    np.testing.assert_array_equal(expert_action("ClothFold", state, 5, approach_slope=0.5),
+                                  expert_action("ClothFold", state, 5, approach_slope=0.0))
+    default = DEFAULT_APPROACH_SLOPE["ClothFold"]
+    np.testing.assert_array_equal(expert_action("ClothFold", state, 5),
+                                  expert_action("ClothFold", state, 5, approach_slope=default))
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="approach_slope"):
+            ExpertPolicy("ClothFold", approach_slope=bad)

@@ -88,6 +88,17 @@ DEFAULT_CLOSE_RADIUS = {
     "ClothFoldDiagonalUnpinned": 0.01,
 }
 
+# Approach: the picker aims at a point above its source corner this many times its horizontal distance from it
+# (at most ``APPROACH_HEIGHT``), so that it descends as it closes in (0: at ``APPROACH_HEIGHT`` until it is within
+# ``ALIGN_RADIUS`` horizontally, then straight down).
+DEFAULT_APPROACH_SLOPE = {
+    "ClothFold": 0.0,
+    "ClothFoldDiagonalPinned": 0.0,
+    "ClothFoldDiagonalUnpinned": 0.0,
+}
+APPROACH_HEIGHT = 0.02  # m above the source corner
+ALIGN_RADIUS = 0.008  # m, horizontally: aligned above the corner (approach_slope 0)
+
 # Carry speed (radians of fold arc per step), tuned on eval seeds 2000-2005 (docs/tasks.md):
 # the two-picker half fold is best slower, the diagonal folds faster.
 DEFAULT_DPHI = {
@@ -111,6 +122,7 @@ def expert_action(
     done_radius: float = 0.02,
     placed_radius: float | None = None,
     grasp_lift: float | None = None,
+    approach_slope: float | None = None,
 ) -> np.ndarray:
     """Expert action for ``state`` of shape ``[*B, state_dim]`` -> ``[*B, action_dim]`` float32.
 
@@ -131,6 +143,9 @@ def expert_action(
         grasp_lift: while a held source corner still lies on the table, the picker rises straight up by
             this much (m) instead of stepping along the fold arc (default: per task, ``DEFAULT_GRASP_LIFT``;
             0: along the arc from the first step).
+        approach_slope: an approaching picker aims this many times its horizontal distance above its source corner
+            (at most 2 cm), descending as it closes in (default: per task, ``DEFAULT_APPROACH_SLOPE``; 0: 2 cm above
+            the corner until within 8 mm of it horizontally, then straight down).
     """
     check_task(task)
     spec = task_spec(task)
@@ -146,6 +161,10 @@ def expert_action(
         raise ValueError(f"close_radius must be > 0 (metres), got {close_radius}")
     if not grasp_lift >= 0:  # also NaN
         raise ValueError(f"grasp_lift must be >= 0 (metres), got {grasp_lift}")
+    if approach_slope is None:
+        approach_slope = DEFAULT_APPROACH_SLOPE[task]
+    if not approach_slope >= 0:  # also NaN
+        raise ValueError(f"approach_slope must be >= 0, got {approach_slope}")
     state = np.asarray(state, dtype=np.float64)
     if state.shape[-1] != spec.state_dim:
         raise ValueError(f"{task}: state must have last dim {spec.state_dim}, got shape {state.shape}")
@@ -201,9 +220,13 @@ def expert_action(
 
     # --- approach / done targets -----------------------------------------------------------
     # approach from straight above so that the first vertex within reach is the corner itself
-    above = src + np.array([0.0, 0.0, 0.02])
-    aligned = (np.linalg.norm((pickers - src)[..., :2], axis=-1) < 0.008)[..., None]
-    approach_target = np.where(aligned, src, above)
+    horizontal = np.linalg.norm((pickers - src)[..., :2], axis=-1)
+    if approach_slope > 0:  # down a cone onto the corner
+        height = np.minimum(approach_slope * horizontal, APPROACH_HEIGHT)[..., None]
+        approach_target = src + height * np.array([0.0, 0.0, 1.0])
+    else:
+        above = src + np.array([0.0, 0.0, APPROACH_HEIGHT])
+        approach_target = np.where((horizontal < ALIGN_RADIUS)[..., None], src, above)
     lift = pickers.copy()
     lift[..., 2] = np.maximum(pickers[..., 2], 0.0) + step_size
     target = np.where(carry[..., None], carry_target, np.where(approach[..., None], approach_target, lift))
