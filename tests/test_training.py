@@ -1,6 +1,6 @@
 """The recipes' update loops: log, checkpoint and --stop-after cadence, rounds of rollouts and updates, DAgger's
 mixture, epochs of minibatches and validation passes."""
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import pytest
 import torch
@@ -227,15 +227,13 @@ def test_snapshot_selection_of_nothing_keeps_the_module():
 def test_snapshot_selection_rounds_and_episodes():
     """on_episodes scores the handle with the protocol reseeded past its own seed, at the run's update counter;
     after_round scores every `every` rounds; finish scores the last, restores the kept one and logs it."""
-    import dataclasses
-
     import numpy as np
 
-    @dataclasses.dataclass
+    @dataclass
     class Protocol:  # the part of EvalProtocol that the selection uses
         seed: int = 7
         episodes: int = 100
-        calls: list = dataclasses.field(default_factory=list)
+        calls: list = field(default_factory=list)
 
         def run(self, run, handle, env, **kw):
             self.calls.append((self.seed, self.episodes, env, kw))
@@ -267,4 +265,3 @@ def test_snapshot_selection_rounds_and_episodes():
     assert lines == ["selection: the teacher after round 2 is kept (train-split scores by round: 0 0.010, 2 1.010, "
                      "4 0.510, 5 0.210)"]
     assert selection.summary() == {"selected_round": 2, "selection_scores": selection.means()}
-

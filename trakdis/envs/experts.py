@@ -88,14 +88,9 @@ DEFAULT_CLOSE_RADIUS = {
     "ClothFoldDiagonalUnpinned": 0.01,
 }
 
-# Approach: the picker aims at a point above its source corner this many times its horizontal distance from it
-# (at most ``APPROACH_HEIGHT``), so that it descends as it closes in (0: at ``APPROACH_HEIGHT`` until it is within
-# ``ALIGN_RADIUS`` horizontally, then straight down).
-DEFAULT_APPROACH_SLOPE = {
-    "ClothFold": 0.0,
-    "ClothFoldDiagonalPinned": 0.0,
-    "ClothFoldDiagonalUnpinned": 0.0,
-}
+# Approach: the picker aims ``APPROACH_HEIGHT`` above its source corner until it is within ``ALIGN_RADIUS`` of it
+# horizontally, then straight down (``expert_action(..., approach_slope=)`` > 0: down a cone instead; measured no
+# better for the teachers, docs/recipes/online_dt.md).
 APPROACH_HEIGHT = 0.02  # m above the source corner
 ALIGN_RADIUS = 0.008  # m, horizontally: aligned above the corner (approach_slope 0)
 
@@ -122,7 +117,7 @@ def expert_action(
     done_radius: float = 0.02,
     placed_radius: float | None = None,
     grasp_lift: float | None = None,
-    approach_slope: float | None = None,
+    approach_slope: float = 0.0,
 ) -> np.ndarray:
     """Expert action for ``state`` of shape ``[*B, state_dim]`` -> ``[*B, action_dim]`` float32.
 
@@ -144,8 +139,8 @@ def expert_action(
             this much (m) instead of stepping along the fold arc (default: per task, ``DEFAULT_GRASP_LIFT``;
             0: along the arc from the first step).
         approach_slope: an approaching picker aims this many times its horizontal distance above its source corner
-            (at most 2 cm), descending as it closes in (default: per task, ``DEFAULT_APPROACH_SLOPE``; 0: 2 cm above
-            the corner until within 8 mm of it horizontally, then straight down).
+            (at most 2 cm), descending as it closes in (0, the default: 2 cm above the corner until within 8 mm of it
+            horizontally, then straight down).
     """
     check_task(task)
     spec = task_spec(task)
@@ -161,8 +156,6 @@ def expert_action(
         raise ValueError(f"close_radius must be > 0 (metres), got {close_radius}")
     if not grasp_lift >= 0:  # also NaN
         raise ValueError(f"grasp_lift must be >= 0 (metres), got {grasp_lift}")
-    if approach_slope is None:
-        approach_slope = DEFAULT_APPROACH_SLOPE[task]
     if not approach_slope >= 0:  # also NaN
         raise ValueError(f"approach_slope must be >= 0, got {approach_slope}")
     state = np.asarray(state, dtype=np.float64)
