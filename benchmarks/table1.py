@@ -54,7 +54,8 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference  # noqa: E402
-from trakdis.method import ENCODER_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args, teacher_stage_args  # noqa: E402
+from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, data_args, encoder_stage_args, student_stage_args,  # noqa: E402
+                            teacher_stage_args)
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
 from trakdis.utils.stages import Stages  # noqa: E402
@@ -193,7 +194,7 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
 
     def student_stage(run_name: str, encoder: Path, *flags: str) -> Path:  # the method's student (+ flags)
         return stage("distill", run_name, "policy.pt",
-                     [*student_stage_args(teacher, encoder, cfg.student_args, parallel=cfg.parallel), *flags])
+                     [*student_stage_args(task, teacher, encoder, cfg.student_args, parallel=cfg.parallel), *flags])
 
     if methods & {"trakdis", "no_pretrain", "no_distill"}:
         encoder = encoder_stage(f"{base}-encoder")
@@ -203,13 +204,15 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
             made(method, student_stage(f"{base}-{method}", encoder, *flags))
     if "no_aug" in methods:
         made("no_aug", student_stage(f"{base}-no_aug", encoder_stage(f"{base}-encoder-noaug", "--no-aug")))
-    # the baselines evaluate nothing themselves: evaluate.py does (their --*-args may say otherwise)
+    # the baselines learn from the method's demonstrations and evaluate nothing themselves: evaluate.py does
+    # (their --*-args may say otherwise)
     if "bc_image" in methods:
         made("bc_image", stage("bc_image", f"{base}-bc_image", "policy.pt",
-                               ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.bc_args)]))
+                               ["--task", task, *data_args(task), "--eval-episodes", "0", *shlex.split(cfg.bc_args)]))
     if "dt_image" in methods:
         made("dt_image", stage("dt_image", f"{base}-dt_image", "policy.pt",
-                               ["--task", task, "--eval-episodes", "0", *shlex.split(cfg.dt_image_args)]))
+                               ["--task", task, *data_args(task), "--eval-episodes", "0",
+                                *shlex.split(cfg.dt_image_args)]))
     if "expert" in methods and "expert" not in evals:  # the expert alone
         evaluate("expert", ["--policy", "expert", "--task", task, "--horizon", "100"])
     robust = {}

@@ -41,8 +41,10 @@ class CollectConfig:
     """episodes to collect"""
     expert_noise: float = DataConfig.expert_noise
     """std of the Gaussian noise added to the expert's picker movements (the grasp command stays +-1)"""
+    close_radius: Optional[float] = DataConfig.close_radius
+    """metres: the expert closes a picker on a corner still on the table within this distance (default: the task's)"""
     path: Optional[str] = None
-    """dataset directory (default: <root>/<task>_<episodes>ep_h<horizon>_noise<sigma>[_px<size>])"""
+    """dataset directory (default: <root>/<task>_<episodes>ep_h<horizon>_noise<sigma>[_close<r>][_px<size>])"""
     root: str = DataConfig.root
     """where default dataset directories live"""
     num_envs: int = field(default_factory=available_workers)
@@ -60,7 +62,7 @@ def main(argv=None):
     torch.set_num_threads(max(1, cfg.threads))
     t0 = time.time()
     data = DataConfig(path=cfg.path, root=cfg.root, episodes=cfg.episodes, expert_noise=cfg.expert_noise,
-                      num_envs=cfg.num_envs)
+                      close_radius=cfg.close_radius, num_envs=cfg.num_envs)
     path = ensure_dataset(data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=cfg.pixels,
                           image_size=cfg.image_size, progress=cfg.progress)
     td, lengths = load_trajectories(path)

@@ -156,7 +156,8 @@ def main(argv=None) -> dict:
             explore_env, handle, buffer, cfg.episodes_per_round, horizon=cfg.horizon, seed=cfg.seed + 1000 * (r + 1),
             policy_seed=cfg.seed, deterministic=cfg.exploration == "mean", add=not cfg.offline_control,
             collector=cfg.collector, phases=phases, workers=cfg.num_envs, extra={"online/round": r + 1},
-            label=(lambda ep: expert_targets(ep, cfg.task, out_key=target)) if target else None)
+            label=(lambda ep: expert_targets(ep, cfg.task, out_key=target, close_radius=cfg.data.close_radius))
+            if target else None)
         if selection is not None:  # the offline teacher: kept unless a later snapshot is measurably better
             selection.consider(0)
 

@@ -104,7 +104,7 @@ def main(argv=None) -> pd.DataFrame:
                              encoder_stage_args(cfg.task, teacher, cfg.encoder_args, parallel=cfg.parallel,
                                                 mask_unseen_pickers=mask))
         student = stages.run("distill", f"{name}-student", "policy.pt",
-                             student_stage_args(teacher, encoder, cfg.student_args, parallel=cfg.parallel))
+                             student_stage_args(cfg.task, teacher, encoder, cfg.student_args, parallel=cfg.parallel))
         policies["student"] = str(student)
         for label, policy in policies.items():  # not in the background, or still waiting there: here, on 2 workers
             if label not in directories or stages.withdraw(f"{name}-eval-{label}"):

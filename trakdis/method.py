@@ -7,7 +7,7 @@ caller's ``extra`` options last (the later flag wins).
 
     teacher = stages.run("online_dt", "t", "policy.pt", teacher_stage_args("ClothFold"))
     encoder = stages.run("train_encoder", "e", "encoder.pt", encoder_stage_args("ClothFold", teacher))
-    student = stages.run("distill", "s", "policy.pt", student_stage_args(teacher, encoder))
+    student = stages.run("distill", "s", "policy.pt", student_stage_args("ClothFold", teacher, encoder))
 """
 from __future__ import annotations
 
@@ -22,6 +22,12 @@ ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
 one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest
 effect on the student, docs/recipes/train_encoder.md); raced in chunks of 10 (--select-chunk), a copy clearly
 behind stops early"""
+DATA_ARGS = {"ClothFold": "--data.close-radius 0.01"}
+"""Per task, the expert data of every stage (and of Table I's image baselines), before a caller's options: on
+ClothFold the demonstrations close their grasps within 1 cm of the corners, not the task expert's 2 cm (which
+serves the exact-state DAgger teacher). A policy acting on blurred states (this teacher's noisy ones, the student's
+estimates) closes about 1.5 cm farther out than its demonstrations; from 2 cm that lands beyond the grasp's reach
+(docs/recipes/pipeline.md)"""
 STUDENT_ARGS = ""
 """recipes/distill.py: its own defaults (weight copy, distillation on the expert data, picker odometry, the per-task
 snapshot selection and expert-action term)"""
@@ -31,10 +37,15 @@ def _flags(*, parallel: bool = False, mask_unseen_pickers: bool = False) -> list
     return (["--mask-unseen-pickers"] if mask_unseen_pickers else []) + (["--parallel"] if parallel else [])
 
 
+def data_args(task: str) -> list[str]:
+    """The expert data options every stage of ``task`` gets (``DATA_ARGS``), so that all read one dataset."""
+    return shlex.split(DATA_ARGS.get(task, ""))
+
+
 def teacher_stage_args(task: str, extra: str = TEACHER_ARGS, *, mask_unseen_pickers: bool = False) -> list[str]:
     """``recipes/online_dt.py``: the expert dataset, collected with the images the encoder stage reads
     (one collection, not two), and the privileged teacher; it evaluates nothing itself (the callers do)."""
-    return ["--task", task, "--collect-pixels", *_flags(mask_unseen_pickers=mask_unseen_pickers),
+    return ["--task", task, *data_args(task), "--collect-pixels", *_flags(mask_unseen_pickers=mask_unseen_pickers),
             "--eval-episodes", "0", *shlex.split(extra)]
 
 
@@ -43,13 +54,13 @@ def encoder_stage_args(task: str, teacher: str | PathLike, extra: str = ENCODER_
     """``recipes/train_encoder.py``: the encoder, also trained on the images of the ``teacher``'s weight-copied
     student (its rounds of rollouts) and chosen by that copy's episodes; ``parallel``: those episodes on 2
     worker processes (the same episodes)."""
-    return ["--task", task, "--teacher", str(teacher),
+    return ["--task", task, *data_args(task), "--teacher", str(teacher),
             *_flags(parallel=parallel, mask_unseen_pickers=mask_unseen_pickers), *shlex.split(extra)]
 
 
-def student_stage_args(teacher: str | PathLike, encoder: str | PathLike, extra: str = STUDENT_ARGS, *,
+def student_stage_args(task: str, teacher: str | PathLike, encoder: str | PathLike, extra: str = STUDENT_ARGS, *,
                        parallel: bool = True) -> list[str]:
-    """``recipes/distill.py``: the image-only student, the ``teacher``'s weights reading the ``encoder``'s
+    """``recipes/distill.py``: the image-only student of ``task``, the ``teacher``'s weights reading the ``encoder``'s
     estimates, distilled; it evaluates nothing itself unless ``extra`` says so."""
-    return ["--teacher", str(teacher), "--encoder", str(encoder), "--eval-episodes", "0",
+    return [*data_args(task), "--teacher", str(teacher), "--encoder", str(encoder), "--eval-episodes", "0",
             *_flags(parallel=parallel), *shlex.split(extra)]

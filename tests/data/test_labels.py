@@ -108,3 +108,24 @@ def test_expert_targets_label_a_rollout_beside_its_executed_actions():
     cloth_fold = _steps([4, 4])[0].set("action", torch.zeros(2, 4, 4))  # a diagonal fold's action size
     with pytest.raises(ValueError, match=r"actions have shape \(2, 4, 8\), the episode's 'action' \(2, 4, 4\)"):
         expert_targets(cloth_fold, "ClothFold")
+
+
+def test_a_dataset_collected_with_another_close_radius_is_labelled_with_it(tmp_path):
+    """``close_radius``: the collecting expert's grasp radius is recorded in the dataset, its clean labels and DAgger's
+    are that expert's; the task's default expert acts otherwise on the same steps (so the test can fail)."""
+    path = collect_expert_dataset(tmp_path / "ds", "ClothFold", num_episodes=1, horizon=6, from_pixels=False,
+                                  progress=False, close_radius=0.01)
+    steps, _ = load_trajectories(path)
+    meta = json.loads((path / "meta.json").read_text())
+    assert meta["config"]["close_radius"] == 0.01
+    state, step_count = steps["state"].numpy(), steps["step_count"].numpy()
+    default = torch.as_tensor(expert_action("ClothFold", state, step_count))
+    assert not torch.equal(default[..., [3, 7]], steps["action"][..., [3, 7]])  # the default expert closes earlier
+    meta["lengths"] = torch.tensor([6])
+    torch.testing.assert_close(expert_labels(steps, meta, path=path), steps["action"])  # noise-free: the recorded ones
+    torch.testing.assert_close(expert_targets(steps.clone(), "ClothFold", close_radius=0.01)["expert_action"],
+                               steps["action"])
+    torch.testing.assert_close(expert_targets(steps.clone(), "ClothFold")["expert_action"], default)
+    with pytest.raises(ValueError, match="close_radius"):
+        collect_expert_dataset(tmp_path / "bad", "ClothFold", num_episodes=1, horizon=2, progress=False, close_radius=0.0)
+    assert not (tmp_path / "bad").exists()

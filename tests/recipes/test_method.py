@@ -21,11 +21,13 @@ def test_stage_args_parse_in_their_recipes_with_the_methods_defaults():
     assert (encoder.teacher, encoder.members, encoder.select_episodes, encoder.extra_noise, encoder.parallel) == (
         "runs/online_dt/t/policy.pt", 3, 30, (0.5,), True)
     distill = load_recipe("distill").DistillConfig
-    student = parse_config(distill, student_stage_args("t.pt", "e.pt", "--eval-episodes 5", parallel=False))
+    student = parse_config(distill, student_stage_args("ClothFoldDiagonalPinned", "t.pt", "e.pt", "--eval-episodes 5",
+                                                       parallel=False))
     assert (student.teacher, student.encoder, student.eval_episodes, student.parallel) == ("t.pt", "e.pt", 5, False)
-    assert parse_config(distill, student_stage_args("t.pt", "e.pt")).eval_episodes == 0
-    masked = encoder_stage_args("ClothFold", "t.pt", "--epochs 2", parallel=False, mask_unseen_pickers=True)
-    assert masked == ["--task", "ClothFold", "--teacher", "t.pt", "--mask-unseen-pickers", "--epochs", "2"]
+    assert parse_config(distill, student_stage_args("ClothFold", "t.pt", "e.pt")).eval_episodes == 0
+    masked = encoder_stage_args("ClothFoldDiagonalPinned", "t.pt", "--epochs 2", parallel=False,
+                                mask_unseen_pickers=True)
+    assert masked == ["--task", "ClothFoldDiagonalPinned", "--teacher", "t.pt", "--mask-unseen-pickers", "--epochs", "2"]
     assert "--mask-unseen-pickers" in teacher_stage_args("ClothFold", mask_unseen_pickers=True)
 
 
@@ -45,3 +47,24 @@ def test_a_bad_encoder_option_is_refused_while_parsing(bad, capsys):
         parse_config(load_recipe("train_encoder").TrainEncoderConfig, encoder_stage_args("ClothFold", "t.pt", bad))
     captured = capsys.readouterr()
     assert "--members" in captured.out + captured.err
+
+
+def test_every_stage_reads_the_same_expert_data_per_task():
+    """trakdis.method.DATA_ARGS: on ClothFold every stage (and Table I's image baselines) reads demonstrations whose
+    grasps close within 1 cm, not the task expert's 2 cm (docs/recipes/pipeline.md); the diagonal folds' the
+    default; a caller's option still wins."""
+    from trakdis.method import DATA_ARGS, data_args
+
+    assert DATA_ARGS == {"ClothFold": "--data.close-radius 0.01"} and data_args("ClothFoldDiagonalPinned") == []
+    recipes = {"online_dt": "OnlineDTConfig", "train_encoder": "TrainEncoderConfig", "distill": "DistillConfig",
+               "bc_image": "BCImageConfig", "dt_image": "DTImageConfig"}
+    configs = {name: getattr(load_recipe(name), cls) for name, cls in recipes.items()}
+    stages = {"online_dt": teacher_stage_args("ClothFold"), "train_encoder": encoder_stage_args("ClothFold", "t.pt"),
+              "distill": student_stage_args("ClothFold", "t.pt", "e.pt"),
+              "bc_image": ["--task", "ClothFold", *data_args("ClothFold")],
+              "dt_image": ["--task", "ClothFold", *data_args("ClothFold")]}
+    for name, args in stages.items():
+        assert parse_config(configs[name], args).data.close_radius == 0.01, name
+    assert parse_config(configs["online_dt"], teacher_stage_args("ClothFoldDiagonalUnpinned")).data.close_radius is None
+    overridden = teacher_stage_args("ClothFold", TEACHER_ARGS + " --data.close-radius 0.02")
+    assert parse_config(configs["online_dt"], overridden).data.close_radius == 0.02

@@ -135,10 +135,11 @@ def _default_env_fn(task, from_pixels, image_size, split, horizon):
     return make_env(task, from_pixels=from_pixels, image_size=image_size, split=split, horizon=horizon)
 
 
-def _default_policy_fn(task, noise, aim_error, seed):
+def _default_policy_fn(task, noise, aim_error, close_radius, seed):
     from trakdis.envs import ExpertPolicy
 
-    return ExpertPolicy(task, noise=noise, seed=seed, aim_error=aim_error)
+    return ExpertPolicy(task, noise=noise, seed=seed, aim_error=aim_error,
+                        **({} if close_radius is None else {"close_radius": close_radius}))
 
 
 def _batch_to_episodes(batch: TensorDictBase, horizon: int, keys: list[str]) -> tuple[TensorDict, torch.Tensor]:
@@ -180,6 +181,7 @@ def collect_expert_dataset(
     make_policy_fn: Callable[[int | None], TensorDictModuleBase] | None = None,
     mp_start_method: str | None = None,
     aim_error: float = 0.0,
+    close_radius: float | None = None,
 ) -> Path:
     """Collects ``num_episodes`` expert episodes of ``task`` into a dataset directory at ``path``.
 
@@ -210,6 +212,8 @@ def collect_expert_dataset(
         mp_start_method: start method of the ``ParallelEnv`` workers (default: TorchRL's choice).
         aim_error: the expert aims at source corners misplaced by this std (metres; ``ExpertPolicy``'s
             ``aim_error``: missed grasps); recorded in the config when > 0.
+        close_radius: the expert closes a picker on a corner still on the table within this distance (metres;
+            ``expert_action``'s; default None: the task's); recorded in the config when set.
 
     Returns:
         The dataset path. Resume a killed collection by calling again with the same arguments.
@@ -220,11 +224,12 @@ def collect_expert_dataset(
             f"collect_expert_dataset: num_episodes ({num_episodes}), num_workers ({num_workers}) and horizon "
             f"({horizon}) must be >= 1"
         )
-    if aim_error and make_policy_fn is not None:
-        raise ValueError("collect_expert_dataset: aim_error applies to the scripted expert, not to make_policy_fn")
-    policy_fn = make_policy_fn or functools.partial(_default_policy_fn, task, noise, aim_error)
+    if (aim_error or close_radius is not None) and make_policy_fn is not None:
+        raise ValueError("collect_expert_dataset: aim_error and close_radius apply to the scripted expert, not to "
+                         "make_policy_fn")
+    policy_fn = make_policy_fn or functools.partial(_default_policy_fn, task, noise, aim_error, close_radius)
     if make_policy_fn is None:
-        policy_fn(None)  # the expert's own checks (noise, aim_error) reject bad values before anything is on disk
+        policy_fn(None)  # the expert's own checks (noise, aim_error, close_radius) reject bad values before anything is on disk
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
     from trakdis.envs import expert_version, render_version
@@ -246,6 +251,8 @@ def collect_expert_dataset(
     }
     if aim_error:  # only then: the config of every other dataset (and of a collection to resume) stays as it was
         config["aim_error"] = float(aim_error)
+    if close_radius is not None:  # the same
+        config["close_radius"] = float(close_radius)
     tmp = partial_path(path)
     tmp.mkdir(parents=True, exist_ok=True)
     lock = _CollectionLock(tmp, path)

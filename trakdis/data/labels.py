@@ -57,7 +57,9 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
     dim = task_spec(meta["task"]).state_dim
     if state.shape[-1] != dim:  # expert_action would index it without naming the file
         raise DatasetError(f"{path}: 'state' has {state.shape[-1]} values per step, a {meta['task']} state has {dim}")
-    labels = torch.as_tensor(expert_action(meta["task"], state.numpy(), steps.get("step_count").numpy()))
+    close_radius = meta.get("config", {}).get("close_radius")  # the collecting expert's, when not the task's
+    labels = torch.as_tensor(expert_action(meta["task"], state.numpy(), steps.get("step_count").numpy(),
+                                           close_radius=close_radius))
     if labels.shape != recorded.shape:
         raise DatasetError(f"{path}: the expert's actions have shape {tuple(labels.shape)}, the dataset's "
                            f"'action' {tuple(recorded.shape)}")
@@ -65,11 +67,13 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
     return torch.where(valid, labels.to(recorded.dtype), torch.zeros((), dtype=recorded.dtype))
 
 
-def expert_targets(episode: TensorDictBase, task: str, *, out_key: str = "expert_action") -> TensorDictBase:
+def expert_targets(episode: TensorDictBase, task: str, *, out_key: str = "expert_action",
+                   close_radius: float | None = None) -> TensorDictBase:
     """Writes into ``episode`` (a rollout ``[T]`` or ``[N, T]`` holding the env's raw ``"state"`` and
     ``"step_count"``) the scripted expert's noise-free action at every step, as ``out_key``, beside
     the executed ``"action"``, which it leaves as it is (a Decision Transformer reads its own executed
-    actions in its context, and learns ``out_key``); returns ``episode``."""
+    actions in its context, and learns ``out_key``); returns ``episode``. ``close_radius``: the expert's
+    (``expert_action``'s; None: the task's), as the demonstrations beside these rollouts were collected."""
     from trakdis.envs.experts import expert_action
 
     missing = [k for k in ("state", "step_count", "action") if k not in episode.keys()]
@@ -77,7 +81,7 @@ def expert_targets(episode: TensorDictBase, task: str, *, out_key: str = "expert
         raise KeyError(f"expert_targets: the episode has no {missing}; keys: {sorted(map(str, episode.keys()))}")
     action = episode.get("action")
     state, step_count = episode.get("state").cpu().numpy(), episode.get("step_count").cpu().numpy()
-    labels = torch.as_tensor(expert_action(task, state, step_count))
+    labels = torch.as_tensor(expert_action(task, state, step_count, close_radius=close_radius))
     if labels.shape != action.shape:
         raise ValueError(f"expert_targets: the {task} expert's actions have shape {tuple(labels.shape)}, the episode's "
                          f"'action' {tuple(action.shape)}")

@@ -49,6 +49,10 @@ class DataConfig:
     reads, drawn per episode and held (ExpertPolicy's aim_error: grasps that miss, as a student's biased
     estimate makes them; 0: none). Part of the default path when > 0 (_aim<sigma>). Its recorded actions are
     the misled expert's; --data.action-labels expert recomputes those of the expert that sees the true state"""
+    close_radius: Optional[float] = None
+    """metres: the collecting expert closes a picker on a corner still on the table within this distance of it
+    (default: the task's, trakdis.envs.experts.DEFAULT_CLOSE_RADIUS). When set, part of the default path
+    (_close<r>) and recorded in the dataset; its expert labels (--data.action-labels expert, DAgger) use it too"""
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together while collecting, one worker process each when > 1 (default: the
     available cores, at most 2; also the chunk size, so a dataset's episodes depend on it)"""
@@ -64,6 +68,7 @@ def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bo
     if cfg.path:
         return Path(cfg.path)
     name = (f"{task}_{cfg.episodes}ep_h{horizon}_noise{cfg.expert_noise:g}" + (f"_aim{cfg.aim_error:g}" if cfg.aim_error else "")
+            + (f"_close{cfg.close_radius:g}" if cfg.close_radius is not None else "")
             + (f"_seed{cfg.seed}" if cfg.seed is not None else "") + (f"_px{image_size}" if pixels else ""))
     return Path(cfg.root) / name
 
@@ -88,6 +93,12 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                 f"dataset {path} ({where}) holds task {meta['task']} with horizon {meta['horizon']}, but this run "
                 f"asks for --task {task} --horizon {horizon}; pass a dataset of that task and horizon (or none, "
                 f"to collect one)")
+        found = meta.get("config", {}).get("close_radius")
+        if cfg.close_radius is not None and found != cfg.close_radius:
+            raise DatasetError(
+                f"dataset {path} ({where}) was collected by an expert closing its grasps within "
+                f"{'the task default' if found is None else f'{found:g} m'} of the corners, but this run asks for "
+                f"--data.close-radius {cfg.close_radius:g}; pass that dataset's radius (or none, for the default)")
         if not cfg.path:  # a default dataset must come from the current scripted expert
             found, version = collected_expert_version(meta), expert_version(task)
             if found != version:
@@ -106,12 +117,13 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
     if path.exists():
         raise FileExistsError(f"{path} exists but holds no dataset (no meta.json); remove it or pass another path")
     verb = "resuming the collection of" if partial_path(path).exists() else "collecting"
-    aim = f", source corners misplaced by {cfg.aim_error:g} m" if cfg.aim_error else ""
+    aim = (f", source corners misplaced by {cfg.aim_error:g} m" if cfg.aim_error else "") + \
+        (f", grasps closed within {cfg.close_radius:g} m" if cfg.close_radius is not None else "")
     log(f"{verb} {cfg.episodes} expert episodes of {task} into {path} (movement noise {cfg.expert_noise:g}{aim}, "
         f"{'with' if pixels else 'without'} pixels)")
     collect_expert_dataset(path, task=task, num_episodes=cfg.episodes, num_workers=cfg.num_envs,
                            image_size=image_size, from_pixels=pixels, noise=cfg.expert_noise, aim_error=cfg.aim_error, seed=seed,
-                           horizon=horizon, progress=progress)
+                           horizon=horizon, progress=progress, close_radius=cfg.close_radius)
     return path
 
 
@@ -266,7 +278,8 @@ def _check_not_the_same_episodes(main: Path, main_config: dict, extra: Path) -> 
     misled aim and chunks, so the same episodes, counted twice)."""
     if Path(extra).resolve() == Path(main).resolve():
         raise DatasetError(f"extra dataset {extra} is the main dataset: its images would count twice")
-    keys = ("task", "seed", "noise", "aim_error", "chunk_size", "split", "horizon", "custom_env", "custom_policy")
+    keys = ("task", "seed", "noise", "aim_error", "close_radius", "chunk_size", "split", "horizon", "custom_env",
+            "custom_policy")
     a, b = main_config, read_meta(extra).get("config", {})
     if not a.get("custom_policy", True) and all(a.get(k) == b.get(k) for k in keys):
         raise DatasetError(f"extra dataset {extra} was collected as the main dataset {main} was (seed {b.get('seed')}, "
