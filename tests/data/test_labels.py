@@ -127,5 +127,6 @@ def test_a_dataset_collected_with_another_close_radius_is_labelled_with_it(tmp_p
                                steps["action"])
     torch.testing.assert_close(expert_targets(steps.clone(), "ClothFold")["expert_action"], default)
     with pytest.raises(ValueError, match="close_radius"):
-        collect_expert_dataset(tmp_path / "bad", "ClothFold", num_episodes=1, horizon=2, progress=False, close_radius=0.0)
+        collect_expert_dataset(tmp_path / "bad", "ClothFold", num_episodes=1, horizon=2, progress=False,
+                               close_radius=0.0)
     assert not (tmp_path / "bad").exists()

@@ -25,7 +25,8 @@ def test_default_name():
     aimed = DataConfig(root="d", episodes=7, expert_noise=0.1, aim_error=0.03)  # a misled expert's: its own name
     assert default_dataset_path(aimed, task="ClothFold", horizon=50, pixels=True).as_posix() == "d/ClothFold_7ep_h50_noise0.1_aim0.03_px32"
     closing = DataConfig(root="d", episodes=7, close_radius=0.01)  # another grasp radius: its own name too
-    assert default_dataset_path(closing, task="ClothFold", horizon=50, pixels=False).as_posix() == "d/ClothFold_7ep_h50_noise0.15_close0.01"
+    closing_path = default_dataset_path(closing, task="ClothFold", horizon=50, pixels=False)
+    assert closing_path.as_posix() == "d/ClothFold_7ep_h50_noise0.15_close0.01"
 
 
 def test_a_dataset_of_another_close_radius_is_refused(tmp_path):
@@ -34,17 +35,17 @@ def test_a_dataset_of_another_close_radius_is_refused(tmp_path):
     path = tmp_path / "data"
     _fake_dataset(path, CLOTHFOLD_EXPERT)
     before = (path / "meta.json").read_bytes()
+    ask = dict(task="ClothFold", horizon=100, seed=0, pixels=True)
     with pytest.raises(DatasetError, match=rf"dataset {path} \(--data.path\) was collected by an expert closing its "
                                            rf"grasps within the task default .* --data.close-radius 0.01"):
-        ensure_dataset(DataConfig(path=str(path), close_radius=0.01), task="ClothFold", horizon=100, seed=0, pixels=True)
+        ensure_dataset(DataConfig(path=str(path), close_radius=0.01), **ask)
     assert (path / "meta.json").read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["data"]
     meta = json.loads(before)
     meta["config"]["close_radius"] = 0.01
     (path / "meta.json").write_text(json.dumps(meta))
-    assert ensure_dataset(DataConfig(path=str(path), close_radius=0.01), task="ClothFold", horizon=100, seed=0,
-                          pixels=True) == path
+    assert ensure_dataset(DataConfig(path=str(path), close_radius=0.01), **ask) == path
     with pytest.raises(DatasetError, match=r"within 0.01 m of the corners, but this run asks for --data.close-radius 0.02"):
-        ensure_dataset(DataConfig(path=str(path), close_radius=0.02), task="ClothFold", horizon=100, seed=0, pixels=True)
+        ensure_dataset(DataConfig(path=str(path), close_radius=0.02), **ask)
 
 
 def test_data_seed_names_the_dataset_and_seeds_its_collection(tmp_path, monkeypatch):

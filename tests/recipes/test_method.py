@@ -27,7 +27,8 @@ def test_stage_args_parse_in_their_recipes_with_the_methods_defaults():
     assert parse_config(distill, student_stage_args("ClothFold", "t.pt", "e.pt")).eval_episodes == 0
     masked = encoder_stage_args("ClothFoldDiagonalPinned", "t.pt", "--epochs 2", parallel=False,
                                 mask_unseen_pickers=True)
-    assert masked == ["--task", "ClothFoldDiagonalPinned", "--teacher", "t.pt", "--mask-unseen-pickers", "--epochs", "2"]
+    assert masked == ["--task", "ClothFoldDiagonalPinned", "--teacher", "t.pt", "--mask-unseen-pickers",
+                      "--epochs", "2"]
     assert "--mask-unseen-pickers" in teacher_stage_args("ClothFold", mask_unseen_pickers=True)
 
 

@@ -229,7 +229,7 @@ def collect_expert_dataset(
                          "make_policy_fn")
     policy_fn = make_policy_fn or functools.partial(_default_policy_fn, task, noise, aim_error, close_radius)
     if make_policy_fn is None:
-        policy_fn(None)  # the expert's own checks (noise, aim_error, close_radius) reject bad values before anything is on disk
+        policy_fn(None)  # the expert's own checks (noise, aim_error, close_radius) reject bad values before any disk write
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
     from trakdis.envs import expert_version, render_version
