@@ -4,8 +4,9 @@
     python recipes/pipeline.py --task ClothFoldDiagonalUnpinned --name unpinned
     python recipes/pipeline.py --name cf --resume                # continue after a kill
 
-1. ``recipes/online_dt.py``: the expert dataset and the privileged teacher (by default offline,
-   on states with 1 cm of Gaussian noise: ``--teacher-args``).
+1. ``recipes/online_dt.py``: the expert dataset (on ClothFold, grasps closed within 1 cm for every stage:
+   ``trakdis.method.DATA_ARGS``) and the privileged teacher (by default offline, on states with 1 cm of
+   Gaussian noise: ``--teacher-args``).
 2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
    and those the weight-copied student visits (``--teacher``, rounds of its rollouts); three trained
    side by side, the one the weight copy folds best with kept (``--members 3 --select-episodes 30``, raced:
