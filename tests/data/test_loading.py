@@ -37,15 +37,16 @@ def test_a_dataset_of_another_close_radius_is_refused(tmp_path):
     before = (path / "meta.json").read_bytes()
     ask = dict(task="ClothFold", horizon=100, seed=0, pixels=True)
     with pytest.raises(DatasetError, match=rf"dataset {path} \(--data.path\) was collected by an expert closing its "
-                                           rf"grasps within the task default .* --data.close-radius 0.01"):
+                                           rf"grasps within the task's default .* asks for 0.01 m \(--data.close-radius"):
         ensure_dataset(DataConfig(path=str(path), close_radius=0.01), **ask)
     assert (path / "meta.json").read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["data"]
     meta = json.loads(before)
     meta["config"]["close_radius"] = 0.01
     (path / "meta.json").write_text(json.dumps(meta))
     assert ensure_dataset(DataConfig(path=str(path), close_radius=0.01), **ask) == path
-    with pytest.raises(DatasetError, match=r"within 0.01 m of the corners, but this run asks for --data.close-radius 0.02"):
-        ensure_dataset(DataConfig(path=str(path), close_radius=0.02), **ask)
+    for other, asked in ((0.02, "0.02 m"), (None, "the task's default")):  # a run's labels must be the data's expert's
+        with pytest.raises(DatasetError, match=rf"within 0.01 m of the corners, but this run asks for {asked}"):
+            ensure_dataset(DataConfig(path=str(path), close_radius=other), **ask)
 
 
 def test_data_seed_names_the_dataset_and_seeds_its_collection(tmp_path, monkeypatch):

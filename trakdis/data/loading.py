@@ -94,11 +94,12 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                 f"asks for --task {task} --horizon {horizon}; pass a dataset of that task and horizon (or none, "
                 f"to collect one)")
         found = meta.get("config", {}).get("close_radius")
-        if cfg.close_radius is not None and found != cfg.close_radius:
+        if found != cfg.close_radius:  # the run's radius is the data's, which its expert labels (DAgger's) use too
+            radius = lambda r: "the task's default" if r is None else f"{r:g} m"  # noqa: E731
             raise DatasetError(
-                f"dataset {path} ({where}) was collected by an expert closing its grasps within "
-                f"{'the task default' if found is None else f'{found:g} m'} of the corners, but this run asks for "
-                f"--data.close-radius {cfg.close_radius:g}; pass that dataset's radius (or none, for the default)")
+                f"dataset {path} ({where}) was collected by an expert closing its grasps within {radius(found)} of "
+                f"the corners, but this run asks for {radius(cfg.close_radius)} (--data.close-radius); pass the "
+                f"dataset's radius")
         if not cfg.path:  # a default dataset must come from the current scripted expert
             found, version = collected_expert_version(meta), expert_version(task)
             if found != version:
