@@ -138,8 +138,7 @@ def _default_env_fn(task, from_pixels, image_size, split, horizon):
 def _default_policy_fn(task, noise, aim_error, close_radius, seed):
     from trakdis.envs import ExpertPolicy
 
-    return ExpertPolicy(task, noise=noise, seed=seed, aim_error=aim_error,
-                        **({} if close_radius is None else {"close_radius": close_radius}))
+    return ExpertPolicy(task, noise=noise, seed=seed, aim_error=aim_error, close_radius=close_radius)  # None: the task's
 
 
 def _batch_to_episodes(batch: TensorDictBase, horizon: int, keys: list[str]) -> tuple[TensorDict, torch.Tensor]:
