@@ -37,7 +37,6 @@ noise-free score; also a section of ``table1.md``) and ``robustness_<task>.png``
 from __future__ import annotations
 
 import functools
-import shlex
 import sys
 import time
 from dataclasses import dataclass
@@ -54,8 +53,8 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference  # noqa: E402
-from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, data_args, encoder_stage_args, student_stage_args,  # noqa: E402
-                            teacher_stage_args)
+from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, encoder_stage_args,  # noqa: E402
+                            student_stage_args, teacher_stage_args)
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
 from trakdis.utils.stages import Stages  # noqa: E402
@@ -207,12 +206,10 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     # the baselines learn from the method's demonstrations and evaluate nothing themselves: evaluate.py does
     # (their --*-args may say otherwise)
     if "bc_image" in methods:
-        made("bc_image", stage("bc_image", f"{base}-bc_image", "policy.pt",
-                               ["--task", task, *data_args(task), "--eval-episodes", "0", *shlex.split(cfg.bc_args)]))
+        made("bc_image", stage("bc_image", f"{base}-bc_image", "policy.pt", baseline_stage_args(task, cfg.bc_args)))
     if "dt_image" in methods:
         made("dt_image", stage("dt_image", f"{base}-dt_image", "policy.pt",
-                               ["--task", task, *data_args(task), "--eval-episodes", "0",
-                                *shlex.split(cfg.dt_image_args)]))
+                               baseline_stage_args(task, cfg.dt_image_args)))
     if "expert" in methods and "expert" not in evals:  # the expert alone
         evaluate("expert", ["--policy", "expert", "--task", task, "--horizon", "100"])
     robust = {}

@@ -2,7 +2,7 @@
 
 ``recipes/pipeline.py`` runs the method on one task; ``benchmarks/table1.py`` runs it, its ablations
 and the image baselines over tasks and seeds. Both build the teacher's, the encoder's and the
-student's arguments here, so that the TraKDis of Table I is the pipeline's. Each function returns a recipe's command-line arguments, the method's defaults first and a
+student's arguments here (Table I its baselines' too), so that the TraKDis of Table I is the pipeline's. Each function returns a recipe's command-line arguments, the method's defaults first and a
 caller's ``extra`` options last (the later flag wins).
 
     teacher = stages.run("online_dt", "t", "policy.pt", teacher_stage_args("ClothFold"))
@@ -64,3 +64,9 @@ def student_stage_args(task: str, teacher: str | PathLike, encoder: str | PathLi
     estimates, distilled; it evaluates nothing itself unless ``extra`` says so."""
     return [*data_args(task), "--teacher", str(teacher), "--encoder", str(encoder), "--eval-episodes", "0",
             *_flags(parallel=parallel), *shlex.split(extra)]
+
+
+def baseline_stage_args(task: str, extra: str = "") -> list[str]:
+    """``recipes/bc_image.py`` / ``recipes/dt_image.py``: an image baseline of ``task`` on the method's expert data
+    (``DATA_ARGS``); it evaluates nothing itself (the callers do)."""
+    return ["--task", task, *data_args(task), "--eval-episodes", "0", *shlex.split(extra)]

@@ -54,7 +54,7 @@ def test_every_stage_reads_the_same_expert_data_per_task():
     """trakdis.method.DATA_ARGS: on ClothFold every stage (and Table I's image baselines) reads demonstrations whose
     grasps close within 1 cm, not the task expert's 2 cm (docs/recipes/pipeline.md); the diagonal folds' the
     default; a caller's option still wins."""
-    from trakdis.method import DATA_ARGS, data_args
+    from trakdis.method import DATA_ARGS, baseline_stage_args, data_args
 
     assert DATA_ARGS == {"ClothFold": "--data.close-radius 0.01"} and data_args("ClothFoldDiagonalPinned") == []
     recipes = {"online_dt": "OnlineDTConfig", "train_encoder": "TrainEncoderConfig", "distill": "DistillConfig",
@@ -62,10 +62,11 @@ def test_every_stage_reads_the_same_expert_data_per_task():
     configs = {name: getattr(load_recipe(name), cls) for name, cls in recipes.items()}
     stages = {"online_dt": teacher_stage_args("ClothFold"), "train_encoder": encoder_stage_args("ClothFold", "t.pt"),
               "distill": student_stage_args("ClothFold", "t.pt", "e.pt"),
-              "bc_image": ["--task", "ClothFold", *data_args("ClothFold")],
-              "dt_image": ["--task", "ClothFold", *data_args("ClothFold")]}
+              "bc_image": baseline_stage_args("ClothFold"), "dt_image": baseline_stage_args("ClothFold", "--updates 3")}
     for name, args in stages.items():
         assert parse_config(configs[name], args).data.close_radius == 0.01, name
+    assert parse_config(configs["dt_image"], stages["dt_image"]).updates == 3
+    assert parse_config(configs["bc_image"], baseline_stage_args("ClothFoldDiagonalPinned")).eval_episodes == 0
     assert parse_config(configs["online_dt"], teacher_stage_args("ClothFoldDiagonalUnpinned")).data.close_radius is None
     overridden = teacher_stage_args("ClothFold", TEACHER_ARGS + " --data.close-radius 0.02")
     assert parse_config(configs["online_dt"], overridden).data.close_radius == 0.02
