@@ -2,8 +2,9 @@
 
 ``recipes/pipeline.py`` runs the method on one task; ``benchmarks/table1.py`` runs it, its ablations
 and the image baselines over tasks and seeds. Both build the teacher's, the encoder's and the
-student's arguments here (Table I its baselines' too), so that the TraKDis of Table I is the pipeline's. Each function returns a recipe's command-line arguments, the method's defaults first and a
-caller's ``extra`` options last (the later flag wins).
+student's arguments here (Table I its baselines' too), so that the TraKDis of Table I is the
+pipeline's. Each function returns a recipe's command-line arguments, the method's defaults first
+and a caller's ``extra`` options last (the later flag wins).
 
     teacher = stages.run("online_dt", "t", "policy.pt", teacher_stage_args("ClothFold"))
     encoder = stages.run("train_encoder", "e", "encoder.pt", encoder_stage_args("ClothFold", teacher))
