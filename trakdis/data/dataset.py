@@ -51,6 +51,7 @@ __all__ = [
     "load_expert_dataset",
     "partial_path",
     "read_meta",
+    "collected_close_radius",
     "collected_expert_version",
 ]
 
@@ -413,6 +414,12 @@ def collected_expert_version(meta: dict) -> int | None:
     """The version of the scripted expert that collected the dataset of ``meta`` (its ``meta.json``):
     1 for datasets older than the field, None for a dataset of a custom policy."""
     return meta.get("config", {}).get("expert_version", 1)
+
+
+def collected_close_radius(meta: dict) -> float | None:
+    """The grasp radius (metres) the scripted expert that collected the dataset of ``meta`` closed its pickers
+    within, when it was not the task's (``collect_expert_dataset(close_radius=)``); None: the task's."""
+    return meta.get("config", {}).get("close_radius")
 
 
 def read_meta(path: str | os.PathLike) -> dict:

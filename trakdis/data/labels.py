@@ -23,7 +23,7 @@ from typing import Any, Literal, Mapping
 import torch
 from tensordict import TensorDictBase
 
-from .dataset import DatasetError, collected_expert_version
+from .dataset import DatasetError, collected_close_radius, collected_expert_version
 from .layout import valid_mask
 
 __all__ = ["ACTION_LABELS", "ActionLabels", "expert_labels", "expert_targets"]
@@ -57,9 +57,8 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
     dim = task_spec(meta["task"]).state_dim
     if state.shape[-1] != dim:  # expert_action would index it without naming the file
         raise DatasetError(f"{path}: 'state' has {state.shape[-1]} values per step, a {meta['task']} state has {dim}")
-    close_radius = meta.get("config", {}).get("close_radius")  # the collecting expert's, when not the task's
     labels = torch.as_tensor(expert_action(meta["task"], state.numpy(), steps.get("step_count").numpy(),
-                                           close_radius=close_radius))
+                                           close_radius=collected_close_radius(meta)))
     if labels.shape != recorded.shape:
         raise DatasetError(f"{path}: the expert's actions have shape {tuple(labels.shape)}, the dataset's "
                            f"'action' {tuple(recorded.shape)}")

@@ -20,8 +20,8 @@ from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.run import RunState
 
 from .buffer import TrajectoryReplayBuffer
-from .dataset import (DatasetError, collect_expert_dataset, collected_expert_version, load_expert_dataset,
-                      partial_path, read_meta)
+from .dataset import (DatasetError, collect_expert_dataset, collected_close_radius, collected_expert_version,
+                      load_expert_dataset, partial_path, read_meta)
 from .labels import ACTION_LABELS, ActionLabels, expert_labels
 from .layout import encode_trajectories, real_steps, split_episodes_train_val, valid_mask
 
@@ -93,7 +93,7 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
                 f"dataset {path} ({where}) holds task {meta['task']} with horizon {meta['horizon']}, but this run "
                 f"asks for --task {task} --horizon {horizon}; pass a dataset of that task and horizon (or none, "
                 f"to collect one)")
-        found = meta.get("config", {}).get("close_radius")
+        found = collected_close_radius(meta)
         if found != cfg.close_radius:  # the run's radius is the data's, which its expert labels (DAgger's) use too
             radius = lambda r: "the task's default" if r is None else f"{r:g} m"  # noqa: E731
             raise DatasetError(
