@@ -19,7 +19,8 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
 * the robustness study (the paper's Fig. 7; with TraKDis, unless ``--noise-levels`` is empty): a
   second student distilled with ``--train-noise`` of Gaussian noise on its estimated state
   (``distill.py --state-noise``), and both students evaluated at each of ``--noise-levels``
-  (``evaluate.py --state-noise``, ``--noise-trials`` episodes per level, the same configurations).
+  (``evaluate.py --state-noise``, ``--noise-trials`` episodes per level, the same configurations;
+  TraKDis at noise 0 is its own evaluation above when the two trial counts agree, not played again).
 
 A stage whose output file exists is skipped and an interrupted one resumed, so ``--resume`` (or
 the same command again) continues where a kill stopped it. ``--methods`` picks a subset. The
@@ -111,7 +112,8 @@ class Table1Config(RunConfig):
     train_noise: float = 1e-3
     """std of the noise the robust student is distilled with (metres; the paper's 1e-3)"""
     noise_trials: int = 0
-    """evaluation episodes per noise level and student (0: --trials)"""
+    """evaluation episodes per noise level and student (0: --trials, and TraKDis's noise-free level is then
+    its --trials evaluation)"""
     parallel: bool = True
     """evaluations (the table's, the robustness study's and the students' curves) on 2 worker processes
     (--no-parallel: in turn; the same numbers)"""
@@ -152,9 +154,9 @@ PRESETS = {"quick": {
 }}
 
 def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
-                  seed: int) -> tuple[dict[str, Path], dict[str, Path]]:
+                  seed: int) -> tuple[dict[str, Path], dict[str, tuple[Path, ...]]]:
     """All stages of one task and seed; returns ``{method: evaluation run directory}`` and, for the
-    robustness study, ``{student: its evaluation over the noise levels}``. With ``--overlap`` the
+    robustness study, ``{student: the evaluation run directories that cover the noise levels}``. With ``--overlap`` the
     evaluations are queued (``stages.submit``) as soon as their policy exists, and have run once the
     caller's ``stages.queued()`` block is left; else each runs in turn when its policy exists."""
     base = f"{name}-{task}-s{seed}"
@@ -216,11 +218,16 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     if cfg.noise_levels and "trakdis" in methods:
         students = {"trakdis": policies["trakdis"],
                     "trakdis_noise": student_stage(f"{base}-trakdis_noise", encoder, "--state-noise", str(cfg.train_noise))}
-        levels = [str(x) for x in cfg.noise_levels]
+        trials = cfg.noise_trials or cfg.trials
         for method, policy in students.items():
-            robust[method] = evaluation(f"{base}-noise-{method}", "summary.csv",
-                                        ["--policy", str(policy), "--trials", str(cfg.noise_trials or cfg.trials),
-                                         "--videos", "0", *parallel, "--state-noise", *levels])
+            # TraKDis's own evaluation is its noise-free level (the same seed, trials and workers: the same
+            # configurations, equal to the last digit), so its ladder plays the other levels only
+            reuse = method == "trakdis" and trials == cfg.trials
+            levels = [str(x) for x in cfg.noise_levels if not (reuse and x == 0)]
+            robust[method] = ((evals["trakdis"],) if reuse else ()) + (
+                (evaluation(f"{base}-noise-{method}", "summary.csv",
+                            ["--policy", str(policy), "--trials", str(trials), "--videos", "0", *parallel,
+                             "--state-noise", *levels]),) if levels else ())
     return {m: evals[m] for m in METHODS if m in evals}, robust
 
 
@@ -296,7 +303,8 @@ def write_curves(run: Run, cfg: Table1Config, seeds: list[int]) -> list[Path]:
     return paths
 
 
-def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], list[Path]]) -> list[Path]:
+def write_robustness(run: Run, cfg: Table1Config,
+                     robust: dict[tuple[str, str], list[tuple[Path, ...]]]) -> list[Path]:
     """The robustness study: per task, student and noise level, the score over all seeds' episodes, the
     spread of the per-seed means and the share of the noise-free score kept (``robustness.csv``, a
     section appended to ``table1.md``); per task a PNG of the score against the noise level."""
@@ -309,16 +317,19 @@ def write_robustness(run: Run, cfg: Table1Config, robust: dict[tuple[str, str], 
         for method in ("trakdis", "trakdis_noise"):
             if (task, method) not in robust:
                 continue
-            episodes = {d: pd.read_csv(d / "episodes.csv").sort_values("episode") for d in robust[task, method]}
+            episodes = {}  # per seed: its evaluations' episodes (a level evaluated twice: the first kept)
+            for dirs in robust[task, method]:
+                frames = pd.concat([pd.read_csv(d / "episodes.csv") for d in dirs], ignore_index=True)
+                episodes[dirs] = frames.drop_duplicates(["state_noise", "episode"]).sort_values("episode")
             finals = []  # levels x seeds
             for level in levels:
                 finals.append([])
-                for d, e in episodes.items():
+                for dirs, e in episodes.items():
                     at = e.loc[np.isclose(e["state_noise"], level, rtol=1e-9, atol=0), "final_normalized_performance"]
                     if at.empty:  # a finished stage of an earlier configuration (--resume with other levels)
-                        raise ValueError(f"{d / 'episodes.csv'} has no episode at state noise {level:g} (its levels: "
-                                         f"{sorted(e['state_noise'].unique())}): run with the levels it was made with, "
-                                         f"or under a new --name")
+                        raise ValueError(f"{' and '.join(str(d / 'episodes.csv') for d in dirs)}: no episode at state "
+                                         f"noise {level:g} (their levels: {sorted(e['state_noise'].unique())}): run "
+                                         f"with the levels it was made with, or under a new --name")
                     finals[-1].append(at.to_numpy(float))
             stats = [summarize_method(f) for f in finals]
             zero = levels.index(0.0)
@@ -365,7 +376,7 @@ def main(argv=None) -> pd.DataFrame:
     seeds = list(range(cfg.seed, cfg.seed + cfg.seeds))
     stages = Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
     evals: dict[tuple[str, str], list[Path]] = {}
-    robust: dict[tuple[str, str], list[Path]] = {}
+    robust: dict[tuple[str, str], list[tuple[Path, ...]]] = {}
     start = time.perf_counter()
     with stages.queued():  # leaving it: every evaluation has run
         for task in cfg.tasks:
@@ -373,8 +384,8 @@ def main(argv=None) -> pd.DataFrame:
                 done, noise = run_task_seed(stages, cfg, run.dir.name, task, seed)
                 for method, directory in done.items():
                     evals.setdefault((task, method), []).append(directory)
-                for method, directory in noise.items():
-                    robust.setdefault((task, method), []).append(directory)
+                for method, directories in noise.items():
+                    robust.setdefault((task, method), []).append(directories)
     write_tables(run, cfg, evals)
     pngs = write_curves(run, cfg, seeds) + write_robustness(run, cfg, robust)
     run.print(f"wall time {time.perf_counter() - start:.0f} s; the stages run so far: {sum(stages.timings.values()):.0f} s "

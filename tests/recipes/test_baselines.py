@@ -119,7 +119,7 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
                                           "--no-eval-teacher"]),
             "--bc-args=" + " ".join([*h, *data, *trunk, "--epochs", "1", "--batch-size", "8", "--hidden-dims", "8"]),
             "--dt-image-args=" + " ".join([*h, *data, *trunk, *dt, "--updates", "1", "--log-every", "1"]),
-            "--noise-levels", "0", "0.001", "--noise-trials", "1", "--no-parallel",  # workers: see the test below
+            "--noise-levels", "0", "0.001", "--noise-trials", "2", "--no-parallel",  # workers: see the test below
             "--no-overlap"]  # evaluations in this process: ten background ones cost ~70 s of imports (tests/utils/test_stages.py)
     try:
         bench = load_benchmark()
@@ -132,13 +132,18 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
             assert label in md, label
         for png in ("curves_ClothFold.png", "robustness_ClothFold.png"):
             assert cv2.imread(str(out / png)) is not None, png
-        # the robustness study: both students at both noise levels, one episode each
+        # the robustness study: both students at both noise levels, two episodes each
         robust = pd.read_csv(out / "robustness.csv")
         assert sorted(zip(robust["method"], robust["state_noise"])) == [
             ("trakdis", 0.0), ("trakdis", 0.001), ("trakdis_noise", 0.0), ("trakdis_noise", 0.001)]
-        assert (robust["n"] == 1).all() and np.allclose(robust.loc[robust["state_noise"] == 0, "kept"].fillna(1), 1)
+        assert (robust["n"] == 2).all() and np.allclose(robust.loc[robust["state_noise"] == 0, "kept"].fillna(1), 1)
         clean = robust[robust["state_noise"] == 0].set_index("method")["mean"]
-        assert np.allclose(robust["change"], robust["mean"] - robust["method"].map(clean))  # one episode: its own change
+        # paired on the same episodes: the change is the difference of the means
+        assert np.allclose(robust["change"], robust["mean"] - robust["method"].map(clean))
+        # TraKDis's noise-free level is its own evaluation (as many trials), not played again by its ladder
+        ladder = pd.read_csv(workdir / "runs" / "evaluate" / "t1-ClothFold-s0-noise-trakdis" / "episodes.csv")
+        assert sorted(ladder["state_noise"].unique()) == [0.001] and len(ladder) == 2
+        assert np.isclose(clean["trakdis"], frame.set_index("method").loc["trakdis", "mean"])
         assert "change at 0.001 (paired)" in md
         assert "## Robustness" in md and "| ClothFold | TraKDis+noise |" in md
         noisy = json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-trakdis_noise" / "config.json").read_text())
@@ -230,9 +235,26 @@ def test_table1_stages_and_their_options():
     for name in ("t-ClothFold-s3-bc_image", "t-ClothFold-s3-dt_image"):
         args = calls[name][1]
         assert args[args.index("--eval-episodes") + 1] == "0", name
-    robust_eval = calls["t-ClothFold-s3-noise-trakdis_noise"][1]
-    assert robust_eval[robust_eval.index("--state-noise") + 1:] == ["0.0", "0.001"]
-    assert robust_eval[robust_eval.index("--trials") + 1] == "7"
+    for student in ("trakdis", "trakdis_noise"):  # 7 trials, not the method's 100: both play every level
+        robust_eval = calls[f"t-ClothFold-s3-noise-{student}"][1]
+        assert robust_eval[robust_eval.index("--state-noise") + 1:] == ["0.0", "0.001"]
+        assert robust_eval[robust_eval.index("--trials") + 1] == "7"
+        assert robust[student] == (Path("runs") / "evaluate" / f"t-ClothFold-s3-noise-{student}",)
+    # as many trials as the method's evaluation: TraKDis's noise-free level is that evaluation
+    for levels, ladder in ((["0", "1e-3"], ["0.001"]), (["0"], None)):
+        stages = Recorder()
+        cfg = parse_config(bench.Table1Config,
+                           ["--noise-levels", *levels, "--noise-trials", "100", "--methods", *methods])
+        _, robust = bench.run_task_seed(stages, cfg, "t", "ClothFold", 3)
+        own = Path("runs") / "evaluate" / "t-ClothFold-s3-eval-trakdis"
+        noise_eval = Path("runs") / "evaluate" / "t-ClothFold-s3-noise-trakdis"
+        assert robust["trakdis"] == ((own, noise_eval) if ladder else (own,))
+        assert ("t-ClothFold-s3-noise-trakdis" in stages.calls) == bool(ladder)
+        if ladder:
+            args = stages.calls["t-ClothFold-s3-noise-trakdis"][1]
+            assert args[args.index("--state-noise") + 1:] == ladder
+        args = stages.calls["t-ClothFold-s3-noise-trakdis_noise"][1]
+        assert args[args.index("--state-noise") + 1:] == [str(float(x)) for x in levels]
     stages = Recorder()
     bench.run_task_seed(stages, parse_config(bench.Table1Config, ["--no-parallel", "--no-overlap", "--noise-levels",
                                                                   "--methods", *methods]), "t", "ClothFold", 0)
