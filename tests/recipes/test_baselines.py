@@ -189,7 +189,8 @@ def test_help(recipe, flags, capsys):
 def test_table1_stages_and_their_options():
     """Which stages one task and seed runs, with which options (recorded, nothing run): every evaluation
     and every student's curve on 2 workers by default, the baselines evaluated by evaluate.py only,
-    the robust student distilled with --train-noise and both students evaluated at every noise level."""
+    the robust student distilled with --train-noise and both students evaluated at every noise level (TraKDis's
+    noise-free level by its own evaluation when the trial counts agree)."""
     bench = load_benchmark()
     from trakdis.utils.config import parse_config
 
