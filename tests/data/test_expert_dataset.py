@@ -145,6 +145,9 @@ def test_real_cloth_env_tiny(tmp_path):
     assert steps["state"].shape == (2, 4, 15) and steps["action"].shape == (2, 4, 4)
     assert steps["truncated"][:, -1].all() and (meta["lengths"] == 4).all()
     assert "final_normalized_performance_mean" in meta["stats"]
+    import mujoco
+
+    assert meta["mujoco_version"] == mujoco.__version__  # the physics release that played the episodes
     assert steps["pixels"].float().std() > 0
     # a misled expert (aim_error): the same cloths and start, another aim; recorded in the config
     aimed = collect_expert_dataset(tmp_path / "aimed", "ClothFoldDiagonalPinned", num_episodes=2, horizon=4,

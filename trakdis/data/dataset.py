@@ -385,6 +385,7 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
         "config": config,
         "stats": stats,
         "collect_seconds_last_run": time.perf_counter() - t_start,
+        "mujoco_version": _mujoco_version(),  # recorded, not checked (other releases play other episodes)
     }
     _write_json_atomic(tmp / "meta.json", meta)
     # progress.json stays until the rename, so a kill at any point leaves a resumable .partial
@@ -408,6 +409,14 @@ _KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 def _meta_error(meta_file: Path, key: str, problem: str) -> DatasetError:
     return DatasetError(f"load_expert_dataset: {meta_file}: {key!r} {problem}")
+
+
+def _mujoco_version() -> str | None:
+    try:
+        import mujoco
+    except ImportError:  # a custom env without MuJoCo
+        return None
+    return str(mujoco.__version__)
 
 
 def collected_expert_version(meta: dict) -> int | None:
