@@ -270,6 +270,7 @@ def collect_expert_dataset(
 def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, num_workers, image_size, from_pixels,
                   seed, split, horizon, progress, callback, make_env_fn, policy_fn, mp_start_method) -> Path:
     """The body of :func:`collect_expert_dataset`, run while it holds the lock on ``tmp``."""
+    import mujoco
     from torchrl.collectors import Collector
 
     from trakdis.envs.batched import SleepWaitParallelEnv
@@ -385,7 +386,7 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
         "config": config,
         "stats": stats,
         "collect_seconds_last_run": time.perf_counter() - t_start,
-        "mujoco_version": _mujoco_version(),  # recorded, not checked (other releases play other episodes)
+        "mujoco_version": str(mujoco.__version__),  # recorded, not checked (other releases play other episodes)
     }
     _write_json_atomic(tmp / "meta.json", meta)
     # progress.json stays until the rename, so a kill at any point leaves a resumable .partial
@@ -409,14 +410,6 @@ _KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 def _meta_error(meta_file: Path, key: str, problem: str) -> DatasetError:
     return DatasetError(f"load_expert_dataset: {meta_file}: {key!r} {problem}")
-
-
-def _mujoco_version() -> str | None:
-    try:
-        import mujoco
-    except ImportError:  # a custom env without MuJoCo
-        return None
-    return str(mujoco.__version__)
 
 
 def collected_expert_version(meta: dict) -> int | None:
