@@ -4,7 +4,7 @@
     python recipes/collect.py --task ClothFold --episodes 8000        # the paper's size (hours on a CPU)
     python recipes/collect.py --task ClothFold --no-pixels            # states only
 
-The dataset directory (default ``datasets/<task>_<N>ep_h<horizon>_noise<sigma>[_px<size>]``, or
+The dataset directory (default ``datasets/<task>_<N>ep_h<horizon>_noise<sigma>[_seed<k>][_px<size>]``, or
 ``--path``) is the on-disk format of :mod:`trakdis.data` (``meta.json`` + memory-mapped
 TensorDict ``[episodes, horizon]``). Collection is resumable: run the same command again after
 an interruption and it continues. ``online_dt.py``, ``train_encoder.py`` and ``distill.py`` collect
@@ -49,8 +49,9 @@ class CollectConfig:
     """where default dataset directories live"""
     num_envs: int = field(default_factory=available_workers)
     """environments stepped together, one worker process each when > 1 (default: the available cores, at most 2)"""
-    seed: int = 0
-    """seed of the expert noise and of the environments"""
+    seed: Optional[int] = None
+    """seed of the expert noise and of the environments (default: 0, the default path's, as every recipe's data;
+    when set, part of the default path, _seed<k>, as the recipes' --data.seed)"""
     threads: int = 1
     """torch CPU threads"""
     progress: bool = True
@@ -62,8 +63,8 @@ def main(argv=None):
     torch.set_num_threads(max(1, cfg.threads))
     t0 = time.time()
     data = DataConfig(path=cfg.path, root=cfg.root, episodes=cfg.episodes, expert_noise=cfg.expert_noise,
-                      close_radius=cfg.close_radius, num_envs=cfg.num_envs)
-    path = ensure_dataset(data, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed, pixels=cfg.pixels,
+                      close_radius=cfg.close_radius, num_envs=cfg.num_envs, seed=cfg.seed)
+    path = ensure_dataset(data, task=cfg.task, horizon=cfg.horizon, seed=0, pixels=cfg.pixels,
                           image_size=cfg.image_size, progress=cfg.progress)
     td, lengths = load_trajectories(path)
     rets = td["reward"].sum(dim=(-2, -1))

@@ -59,7 +59,31 @@ def test_data_seed_names_the_dataset_and_seeds_its_collection(tmp_path, monkeypa
     assert path.name == "ClothFold_2ep_h4_noise0.15_seed5" and calls == [(path, 5)]  # --data.seed wins over the run's
     ensure_dataset(DataConfig(root=str(tmp_path), episodes=2), task="ClothFold", horizon=4, seed=3, pixels=False,
                    log=lambda *a: None)
-    assert calls[-1] == (tmp_path / "ClothFold_2ep_h4_noise0.15", 3)  # unset: the run's seed, the path as before
+    # unset: a default path names no seed, so it is seed 0's whichever run collects it first (the encoder's extra
+    # datasets: their offsets); a path of one's own: the run's seed
+    assert calls[-1] == (tmp_path / "ClothFold_2ep_h4_noise0.15", 0)
+    ensure_dataset(DataConfig(root=str(tmp_path), episodes=2, expert_noise=0.5), task="ClothFold", horizon=4, seed=3,
+                   pixels=False, log=lambda *a: None, seed_offset=1)
+    assert calls[-1] == (tmp_path / "ClothFold_2ep_h4_noise0.5", 1)
+    ensure_dataset(DataConfig(path=str(tmp_path / "mine")), task="ClothFold", horizon=4, seed=3, pixels=False,
+                   log=lambda *a: None)
+    assert calls[-1] == (tmp_path / "mine", 3)
+
+
+def test_a_default_dataset_of_another_seed_is_used_and_said_so(tmp_path, monkeypatch):
+    from trakdis.data import loading
+
+    cfg = DataConfig(root=str(tmp_path), episodes=2)
+    path = default_dataset_path(cfg, task="ClothFold", horizon=4, pixels=False)
+    path.mkdir()
+    (path / "meta.json").write_text("{}")
+    monkeypatch.setattr(loading, "collect_expert_dataset", lambda path, **kw: pytest.fail("collected again"))
+    for found, notes in ((0, 0), (2, 1)):  # collected by an earlier trakdis with its run's seed 2
+        monkeypatch.setattr(loading, "read_meta", lambda p, found=found: {
+            "task": "ClothFold", "horizon": 4, "config": {"seed": found, "expert_version": expert_version("ClothFold")}})
+        lines = []
+        assert ensure_dataset(cfg, task="ClothFold", horizon=4, seed=5, pixels=False, log=lines.append) == path
+        assert len(lines) == notes and all("collected with seed 2, not the default path's 0" in x for x in lines)
 
 
 @pytest.mark.parametrize("found", [None, CLOTHFOLD_EXPERT - 1])
@@ -208,9 +232,9 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_datasets(tmp_
                 aimed: (_episodes(1, 3), torch.tensor([2]))}
     seeds = {}
 
-    def ensure_dataset(cfg, *, task, horizon, seed, pixels, **kw):
+    def ensure_dataset(cfg, *, task, horizon, seed, pixels, seed_offset=0, **kw):
         path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels)
-        seeds[path] = seed
+        seeds[path] = loading.collection_seed(cfg, seed=seed, seed_offset=seed_offset)
         return path
 
     monkeypatch.setattr(loading, "ensure_dataset", ensure_dataset)
@@ -224,7 +248,7 @@ def test_load_train_val_steps_splits_by_episode_and_adds_the_extra_datasets(tmp_
                                                                 keys=("pixels", "state"), val_fraction=0.4,
                                                                 extra_noise=(0.3,), extra_aim_error=(0.03,),
                                                                 log=lines.append)
-    assert path == main and seeds == {main: 7, extra: 8, aimed: 9}
+    assert path == main and seeds == {main: 0, extra: 1, aimed: 2}  # default paths: seeds that no run's --seed moves
     expected_train, expected_val = split_episodes_train_val(5, 0.4, seed=7)
     assert train_eps.tolist() == expected_train.tolist() and val_eps.tolist() == expected_val.tolist()
     lengths = [3, 2, 3, 1, 3]

@@ -57,8 +57,10 @@ class DataConfig:
     """environments stepped together while collecting, one worker process each when > 1 (default: the
     available cores, at most 2; also the chunk size, so a dataset's episodes depend on it)"""
     seed: Optional[int] = None
-    """seed of the collection when the dataset is missing (default: the run's --seed). When set, part of the default
-    path (_seed<k>), so that the same expert's datasets of other seeds live beside it: more episodes, never the same"""
+    """seed of the collection when the dataset is missing. When set, part of the default path (_seed<k>), so that
+    the same expert's datasets of other seeds live beside it: more episodes, never the same. Unset, a default path
+    is always collected with seed 0 (the encoder's extra datasets: 1 and 2), whichever run's --seed collects it
+    first, so that a run's data never depends on which run went before; a --data.path of one's own: the run's seed"""
     action_labels: ActionLabels = "executed"
     """the actions a policy learns: the recorded, noisy ones (executed), or the scripted expert's
     noise-free action at each recorded step (expert: DART's clean labels; trakdis.data.labels)"""
@@ -73,21 +75,36 @@ def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bo
     return Path(cfg.root) / name
 
 
+def collection_seed(cfg: DataConfig, *, seed: int, seed_offset: int = 0) -> int:
+    """The seed a missing dataset of ``cfg`` is collected with: ``--data.seed`` when set; else ``seed_offset`` at a
+    default path (which names no seed: the same episodes whichever run collects it first), the run's ``seed`` at a
+    ``--data.path`` of one's own."""
+    if cfg.seed is not None:
+        return cfg.seed
+    return seed if cfg.path else seed_offset
+
+
 def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixels: bool, image_size: int = 32,
-                   log: Callable[..., None] = print, progress: bool = True) -> Path:
-    """The dataset directory; collected first (resuming an interrupted collection) if missing.
+                   log: Callable[..., None] = print, progress: bool = True, seed_offset: int = 0) -> Path:
+    """The dataset directory; collected first (resuming an interrupted collection) if missing, with
+    :func:`collection_seed` (``seed``: the run's; ``seed_offset``: which of a run's default datasets).
 
     An existing dataset must hold episodes of ``task`` with ``horizon`` steps (its ``meta.json``):
-    anything else is a :class:`~trakdis.data.DatasetError` naming the path and both values."""
+    anything else is a :class:`~trakdis.data.DatasetError` naming the path and both values. A default
+    dataset collected with another seed (by an earlier trakdis) is used, and said so."""
     from trakdis.envs import expert_version, render_version
 
     if horizon < 1:
         raise ValueError(f"--horizon {horizon}: the episode length must be >= 1")
-    seed = seed if cfg.seed is None else cfg.seed
+    seed = collection_seed(cfg, seed=seed, seed_offset=seed_offset)
     path = default_dataset_path(cfg, task=task, horizon=horizon, pixels=pixels, image_size=image_size)
     if (path / "meta.json").exists():
         meta = read_meta(path)
         where = "--data.path" if cfg.path else "the default dataset path"
+        found = meta.get("config", {}).get("seed")
+        if not cfg.path and found is not None and found != seed:
+            log(f"note: {path} was collected with seed {found}, not the default path's {seed} (an earlier trakdis "
+                f"collected default datasets with the seed of the run that made them); using it")
         if meta["task"] != task or meta["horizon"] != horizon:
             raise DatasetError(
                 f"dataset {path} ({where}) holds task {meta['task']} with horizon {meta['horizon']}, but this run "
@@ -236,11 +253,11 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     (:func:`~trakdis.data.split_episodes_train_val` with ``val_fraction`` and ``seed``).
 
     ``extra_noise``: the training steps also hold all the steps of the datasets of ``cfg``'s size
-    collected with these expert movement noises (default paths, seed ``seed + 1``; each found or
+    collected with these expert movement noises (default paths, collection seed 1; each found or
     collected before the split), each announced as ``"training images +<n> from <path>"``; the
     validation steps stay the main dataset's. ``extra_aim_error``: the same with datasets whose expert
     aims at source corners misplaced by these stds (:attr:`DataConfig.aim_error`; ``cfg``'s movement
-    noise, seed ``seed + 2``). ``extra_seeds``: datasets like ``cfg``'s (its size and movement noise) collected
+    noise, collection seed 2). ``extra_seeds``: datasets like ``cfg``'s (its size and movement noise) collected
     with these seeds (:attr:`DataConfig.seed`: their own default paths), more episodes of the same expert.
     ``extra_data``: the steps of these existing datasets too (each of ``task`` and ``horizon``, with images).
     An extra dataset that is the main one, or was collected exactly as it was, is a
@@ -250,16 +267,16 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     data, lengths = load_trajectories(path, keys=keys, action_labels=cfg.action_labels)
     main_config = read_meta(path).get("config", {})
     extra = []
-    # the noisier and the misled experts' datasets: seeds relative to the run's (not --data.seed's)
-    extra_cfgs = [(dataclasses.replace(cfg, path=None, seed=None, expert_noise=float(noise)), seed + 1) for noise in extra_noise]
-    extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=None, aim_error=float(aim)), seed + 2) for aim in extra_aim_error]
-    extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=int(k)), int(k)) for k in extra_seeds]
+    # the noisier and the misled experts' datasets: default paths, seeds 1 and 2 (collection_seed)
+    extra_cfgs = [(dataclasses.replace(cfg, path=None, seed=None, expert_noise=float(noise)), 1) for noise in extra_noise]
+    extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=None, aim_error=float(aim)), 2) for aim in extra_aim_error]
+    extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=int(k)), 0) for k in extra_seeds]
     for extra_path in map(Path, extra_data):  # never collected: a path given by hand must hold a dataset
         if not (extra_path / "meta.json").exists():
             raise DatasetError(f"extra dataset {extra_path}: no dataset there (no meta.json)")
-        extra_cfgs.append((dataclasses.replace(cfg, path=str(extra_path)), seed))
-    for extra_cfg, extra_seed in extra_cfgs:
-        extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=extra_seed, pixels=True,
+        extra_cfgs.append((dataclasses.replace(cfg, path=str(extra_path)), 0))
+    for extra_cfg, offset in extra_cfgs:
+        extra_path = ensure_dataset(extra_cfg, task=task, horizon=horizon, seed=seed, seed_offset=offset, pixels=True,
                                     image_size=image_size, log=log, progress=progress)
         _check_not_the_same_episodes(path, main_config, extra_path)
         extra.append((extra_path, *load_trajectories(extra_path, keys=keys, action_labels=cfg.action_labels)))
