@@ -80,7 +80,8 @@ def test_a_default_dataset_of_another_seed_is_used_and_said_so(tmp_path, monkeyp
     monkeypatch.setattr(loading, "collect_expert_dataset", lambda path, **kw: pytest.fail("collected again"))
     for found, notes in ((0, 0), (2, 1)):  # collected by an earlier trakdis with its run's seed 2
         monkeypatch.setattr(loading, "read_meta", lambda p, found=found: {
-            "task": "ClothFold", "horizon": 4, "config": {"seed": found, "expert_version": expert_version("ClothFold")}})
+            "task": "ClothFold", "horizon": 4,
+            "config": {"seed": found, "expert_version": expert_version("ClothFold")}})
         lines = []
         assert ensure_dataset(cfg, task="ClothFold", horizon=4, seed=5, pixels=False, log=lines.append) == path
         assert len(lines) == notes and all("collected with seed 2, not the default path's 0" in x for x in lines)

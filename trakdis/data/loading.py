@@ -268,7 +268,8 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     main_config = read_meta(path).get("config", {})
     extra = []
     # the noisier and the misled experts' datasets: default paths, seeds 1 and 2 (collection_seed)
-    extra_cfgs = [(dataclasses.replace(cfg, path=None, seed=None, expert_noise=float(noise)), 1) for noise in extra_noise]
+    extra_cfgs = [(dataclasses.replace(cfg, path=None, seed=None, expert_noise=float(noise)), 1)
+                  for noise in extra_noise]
     extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=None, aim_error=float(aim)), 2) for aim in extra_aim_error]
     extra_cfgs += [(dataclasses.replace(cfg, path=None, seed=int(k)), 0) for k in extra_seeds]
     for extra_path in map(Path, extra_data):  # never collected: a path given by hand must hold a dataset
