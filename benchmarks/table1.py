@@ -55,7 +55,7 @@ from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference  # noqa: E402
 from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, encoder_stage_args,  # noqa: E402
-                            student_stage_args, teacher_stage_args)
+                            student_stage_args, teacher_stage, teacher_stage_args)
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
 from trakdis.utils.stages import Stages  # noqa: E402
@@ -68,6 +68,7 @@ LABELS = {"expert": "expert (state)", "teacher": "teacher (state)", "trakdis": "
           "bc_image": "BC-image", "dt_image": "DT-image", "no_aug": "No-Aug", "no_pretrain": "No-Pretrain",
           "no_distill": "No-Distill", "trakdis_noise": "TraKDis+noise"}
 CURVE_METHODS = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the paper's Fig. 6: same x axis (distill updates)
+STUDENT_OF_TEACHER = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the arms built on the teacher (and its encoder)
 
 # The paper's Table I (W. Chen and N. Rojas, RA-L 2024; ../shared/docs/method.md): mean and, where
 # given, std over 100 trials. A reference beside our numbers, not a result of this code.
@@ -96,6 +97,12 @@ class Table1Config(RunConfig):
     teacher_args: str = TEACHER_ARGS
     """options of recipes/online_dt.py (the method's teacher, as recipes/pipeline.py runs it: trakdis.method;
     the stage collects the images for the encoder and evaluates nothing itself, unless these say otherwise)"""
+    teacher_candidates: int = 1
+    """teacher stages per seed (candidate i: seed + 1000 i); the one that folds best on --teacher-select-episodes
+    train-split episodes is kept unless candidate 0 is within a standard error of it (trakdis.method.teacher_stage);
+    the stages after it are named after the kept candidate (<name>-<task>-s<seed>-c<i>-...)"""
+    teacher_select_episodes: int = 30
+    """train-split episodes each teacher candidate plays (with --teacher-candidates > 1)"""
     encoder_args: str = ENCODER_ARGS
     """options of recipes/train_encoder.py (the method's encoder, trained also on the teacher's weight-copied
     student's images and chosen by its episodes: trakdis.method; No-Aug adds --no-aug)"""
@@ -123,6 +130,9 @@ class Table1Config(RunConfig):
     the same numbers)"""
 
     def __post_init__(self):
+        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2):
+            raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
+                             f"{self.teacher_select_episodes}: >= 2 to compare candidates")
         if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
             raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1; "
                              f"--noise-trials {self.noise_trials}: >= 0")
@@ -154,23 +164,25 @@ PRESETS = {"quick": {
 }}
 
 def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
-                  seed: int) -> tuple[dict[str, Path], dict[str, tuple[Path, ...]]]:
-    """All stages of one task and seed; returns ``{method: evaluation run directory}`` and, for the
-    robustness study, ``{student: the evaluation run directories that cover the noise levels}``. With ``--overlap`` the
+                  seed: int) -> tuple[dict[str, Path], dict[str, tuple[Path, ...]], dict[str, Path]]:
+    """All stages of one task and seed; returns ``{method: evaluation run directory}``, for the
+    robustness study ``{student: the evaluation run directories that cover the noise levels}``, and
+    ``{student arm: its distill run directory}`` (the curves). With ``--overlap`` the
     evaluations are queued (``stages.submit``) as soon as their policy exists, and have run once the
     caller's ``stages.queued()`` block is left; else each runs in turn when its policy exists."""
-    base = f"{name}-{task}-s{seed}"
+    base = chain = f"{name}-{task}-s{seed}"  # chain: the stages after the teacher, named after the kept candidate
     stage = functools.partial(stages.run, seed=seed)  # every stage of this task and seed
     evaluation = functools.partial(stages.submit if cfg.overlap else stages.run, "evaluate", seed=seed)
     parallel = ["--parallel"] if cfg.parallel else ["--no-parallel"]
     methods = set(cfg.methods)
-    needs_teacher = methods & {"teacher", "trakdis", "no_aug", "no_pretrain", "no_distill"}
+    needs_teacher = methods & {"teacher", *STUDENT_OF_TEACHER}
     policies: dict[str, Path] = {}
     evals: dict[str, Path] = {}
     teacher = encoder = None
 
     def evaluate(method: str, policy_args: list[str]) -> None:  # --trials episodes of one method
-        evals[method] = evaluation(f"{base}-eval-{method}", "summary.csv",
+        prefix = chain if method in STUDENT_OF_TEACHER or method == "teacher" else base
+        evals[method] = evaluation(f"{prefix}-eval-{method}", "summary.csv",
                                    [*policy_args, "--trials", str(cfg.trials), "--videos", "0", *parallel])
 
     def made(method: str, directory: Path) -> Path:  # a method's policy exists: evaluate it (and the expert)
@@ -186,8 +198,11 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
 
     if needs_teacher:
         # with the images the encoder stage reads (one collection, not two); evaluated by evaluate.py
-        teacher = made("teacher", stage("online_dt", f"{base}-teacher", "policy.pt",
-                                        teacher_stage_args(task, cfg.teacher_args)))
+        teacher, kept = teacher_stage(stages, f"{base}-teacher", teacher_stage_args(task, cfg.teacher_args), seed=seed,
+                                      candidates=cfg.teacher_candidates, select_episodes=cfg.teacher_select_episodes,
+                                      parallel=cfg.parallel)
+        chain = f"{base}-c{kept}" if kept else base
+        made("teacher", teacher)
 
     def encoder_stage(run_name: str, *flags: str) -> Path:  # the method's encoder (+ an ablation's flags)
         return stage("train_encoder", run_name, "encoder.pt",
@@ -198,13 +213,13 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
                      [*student_stage_args(task, teacher, encoder, cfg.student_args, parallel=cfg.parallel), *flags])
 
     if methods & {"trakdis", "no_pretrain", "no_distill"}:
-        encoder = encoder_stage(f"{base}-encoder")
+        encoder = encoder_stage(f"{chain}-encoder")
     arms = {"trakdis": [], "no_pretrain": ["--no-weight-copy"], "no_distill": ["--no-distill"]}
     for method, flags in arms.items():
         if method in methods:
-            made(method, student_stage(f"{base}-{method}", encoder, *flags))
+            made(method, student_stage(f"{chain}-{method}", encoder, *flags))
     if "no_aug" in methods:
-        made("no_aug", student_stage(f"{base}-no_aug", encoder_stage(f"{base}-encoder-noaug", "--no-aug")))
+        made("no_aug", student_stage(f"{chain}-no_aug", encoder_stage(f"{chain}-encoder-noaug", "--no-aug")))
     # the baselines learn from the method's demonstrations and evaluate nothing themselves: evaluate.py does
     # (their --*-args may say otherwise)
     if "bc_image" in methods:
@@ -217,7 +232,8 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     robust = {}
     if cfg.noise_levels and "trakdis" in methods:
         students = {"trakdis": policies["trakdis"],
-                    "trakdis_noise": student_stage(f"{base}-trakdis_noise", encoder, "--state-noise", str(cfg.train_noise))}
+                    "trakdis_noise": student_stage(f"{chain}-trakdis_noise", encoder, "--state-noise",
+                                                   str(cfg.train_noise))}
         trials = cfg.noise_trials or cfg.trials
         for method, policy in students.items():
             # TraKDis's own evaluation is its noise-free level (the same seed, trials and workers: the same
@@ -225,10 +241,11 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
             reuse = method == "trakdis" and trials == cfg.trials
             levels = [str(x) for x in cfg.noise_levels if not (reuse and x == 0)]
             robust[method] = ((evals["trakdis"],) if reuse else ()) + (
-                (evaluation(f"{base}-noise-{method}", "summary.csv",
+                (evaluation(f"{chain}-noise-{method}", "summary.csv",
                             ["--policy", str(policy), "--trials", str(trials), "--videos", "0", *parallel,
                              "--state-noise", *levels]),) if levels else ())
-    return {m: evals[m] for m in METHODS if m in evals}, robust
+    students = {m: policies[m] for m in CURVE_METHODS if m in policies}
+    return {m: evals[m] for m in METHODS if m in evals}, robust, students
 
 
 def summarize_method(finals_per_seed: list[np.ndarray]) -> dict:
@@ -280,12 +297,12 @@ def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[
     return frame
 
 
-def write_curves(run: Run, cfg: Table1Config, seeds: list[int]) -> list[Path]:
+def write_curves(run: Run, cfg: Table1Config, students: dict[tuple[str, str], list[Path]]) -> list[Path]:
     paths = []
     for task in cfg.tasks:
         curves = {}
         for method in (m for m in CURVE_METHODS if m in cfg.methods):
-            logs = [Path(cfg.root) / "distill" / f"{run.dir.name}-{task}-s{s}-{method}" / "log.csv" for s in seeds]
+            logs = [d / "log.csv" for d in students.get((task, method), [])]
             series = []
             for log in logs:
                 if log.exists():
@@ -377,17 +394,20 @@ def main(argv=None) -> pd.DataFrame:
     stages = Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
     evals: dict[tuple[str, str], list[Path]] = {}
     robust: dict[tuple[str, str], list[tuple[Path, ...]]] = {}
+    students: dict[tuple[str, str], list[Path]] = {}
     start = time.perf_counter()
     with stages.queued():  # leaving it: every evaluation has run
         for task in cfg.tasks:
             for seed in seeds:
-                done, noise = run_task_seed(stages, cfg, run.dir.name, task, seed)
+                done, noise, arms = run_task_seed(stages, cfg, run.dir.name, task, seed)
+                for method, directory in arms.items():
+                    students.setdefault((task, method), []).append(directory)
                 for method, directory in done.items():
                     evals.setdefault((task, method), []).append(directory)
                 for method, directories in noise.items():
                     robust.setdefault((task, method), []).append(directories)
     write_tables(run, cfg, evals)
-    pngs = write_curves(run, cfg, seeds) + write_robustness(run, cfg, robust)
+    pngs = write_curves(run, cfg, students) + write_robustness(run, cfg, robust)
     run.print(f"wall time {time.perf_counter() - start:.0f} s; the stages run so far: {sum(stages.timings.values()):.0f} s "
               "(timings.csv; background stages overlap the others)")
     run.print(f"wrote {run.dir / 'table1.md'}" + "".join(f", {p.name}" for p in pngs))

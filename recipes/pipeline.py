@@ -6,7 +6,9 @@
 
 1. ``recipes/online_dt.py``: the expert dataset (on ClothFold, grasps closed within 1 cm for every stage:
    ``trakdis.method.DATA_ARGS``) and the privileged teacher (by default offline, on states with 1 cm of
-   Gaussian noise: ``--teacher-args``).
+   Gaussian noise: ``--teacher-args``). With ``--teacher-candidates N`` the teacher stage runs N times (other
+   seeds) and the one that folds best on ``--teacher-select-episodes`` train-split episodes is kept
+   (``trakdis.method.teacher_stage``); the stages after it are then named ``<name>-c<i>-...``.
 2. ``recipes/train_encoder.py``: the state encoder on the same dataset's images, a noisy expert's,
    and those the weight-copied student visits (``--teacher``, rounds of its rollouts); three trained
    side by side, the one the weight copy folds best with kept (``--members 3 --select-episodes 30``, raced:
@@ -42,7 +44,7 @@ import pandas as pd
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import write_summary_table
 from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args,
-                            teacher_stage_args)
+                            teacher_stage, teacher_stage_args)
 from trakdis.policies import load_policy
 from trakdis.utils.config import parse_config
 from trakdis.utils.run import Run, RunConfig
@@ -61,6 +63,11 @@ class PipelineConfig(RunConfig):
     teacher_args: str = TEACHER_ARGS
     """extra options for recipes/online_dt.py (default: the offline teacher trained on states with
     1 cm of Gaussian noise, so that its weights act on an encoder's estimates; trakdis.method)"""
+    teacher_candidates: int = 1
+    """teacher stages run (candidate i: --seed + 1000 i); the one that folds best on --teacher-select-episodes
+    train-split episodes is kept unless candidate 0 is within a standard error of it (trakdis.method.teacher_stage)"""
+    teacher_select_episodes: int = 30
+    """train-split episodes each teacher candidate plays (with --teacher-candidates > 1)"""
     encoder_args: str = ENCODER_ARGS
     """extra options for recipes/train_encoder.py (default: noisy-expert images added to training; three
     encoders trained side by side, the one whose weight copy folds best on 30 train-split episodes kept;
@@ -75,6 +82,11 @@ class PipelineConfig(RunConfig):
     parallel: bool = True
     """evaluate the teacher and the student, and play the encoder's and the student's rollouts and selection
     episodes, on 2 worker processes (--no-parallel: in turn; the same numbers)"""
+
+    def __post_init__(self):  # checked while the command line is parsed, before any stage runs
+        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2):
+            raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
+                             f"{self.teacher_select_episodes}: >= 2 to compare candidates")
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -93,23 +105,27 @@ def main(argv=None) -> pd.DataFrame:
         if "expert" in background:  # from the start, on the core that the teacher's training leaves idle
             directories["expert"] = stages.submit("evaluate", f"{name}-eval-expert", "summary.csv",
                                                   ["--policy", "expert", *evaluate])
-        teacher = stages.run("online_dt", f"{name}-teacher", "policy.pt", teacher_args)
+        teacher, kept = teacher_stage(stages, f"{name}-teacher", teacher_args, seed=cfg.seed,
+                                      candidates=cfg.teacher_candidates, select_episodes=cfg.teacher_select_episodes,
+                                      parallel=cfg.parallel)
+        chain = f"{name}-c{kept}" if kept else name  # the stages after the teacher, named after the kept candidate
         policies["teacher"] = str(teacher)
         if load_policy(teacher).horizon != horizon:  # a resumed teacher stage with another --horizon
             raise ValueError(f"{teacher / 'policy.pt'}: horizon {load_policy(teacher).horizon}, but the teacher's "
                              f"arguments give {horizon}; run the pipeline under another --name")
         if "teacher" in background:  # beside the encoder's and the student's training
-            directories["teacher"] = stages.submit("evaluate", f"{name}-eval-teacher", "summary.csv",
+            directories["teacher"] = stages.submit("evaluate", f"{chain}-eval-teacher", "summary.csv",
                                                    ["--policy", policies["teacher"], *evaluate])
-        encoder = stages.run("train_encoder", f"{name}-encoder", "encoder.pt",
+        encoder = stages.run("train_encoder", f"{chain}-encoder", "encoder.pt",
                              encoder_stage_args(cfg.task, teacher, cfg.encoder_args, parallel=cfg.parallel,
                                                 mask_unseen_pickers=mask))
-        student = stages.run("distill", f"{name}-student", "policy.pt",
+        student = stages.run("distill", f"{chain}-student", "policy.pt",
                              student_stage_args(cfg.task, teacher, encoder, cfg.student_args, parallel=cfg.parallel))
         policies["student"] = str(student)
         for label, policy in policies.items():  # not in the background, or still waiting there: here, on 2 workers
-            if label not in directories or stages.withdraw(f"{name}-eval-{label}"):
-                directories[label] = stages.run("evaluate", f"{name}-eval-{label}", "summary.csv",
+            prefix = name if label == "expert" else chain
+            if label not in directories or stages.withdraw(f"{prefix}-eval-{label}"):
+                directories[label] = stages.run("evaluate", f"{prefix}-eval-{label}", "summary.csv",
                                                 ["--policy", policy, *evaluate, *parallel])
     rows = [{**pd.read_csv(directories[label] / "summary.csv").iloc[0].to_dict(), "policy": label}
             for label in policies]  # expert, teacher, student

@@ -12,8 +12,14 @@ and a caller's ``extra`` options last (the later flag wins).
 """
 from __future__ import annotations
 
+import json
 import shlex
 from os import PathLike
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from trakdis.utils.stages import Stages
 
 TEACHER_ARGS = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
 """recipes/online_dt.py: the offline teacher trained on states with 1 cm of Gaussian noise, so that its
@@ -29,6 +35,9 @@ ClothFold the demonstrations close their grasps within 1 cm of the corners, not 
 serves the exact-state DAgger teacher). A policy acting on blurred states (this teacher's noisy ones, the student's
 estimates) closes about 1.5 cm farther out than its demonstrations; from 2 cm that lands beyond the grasp's reach
 (docs/recipes/pipeline.md)"""
+CANDIDATE_SEED_STRIDE = 1000
+"""Teacher candidate ``i`` of a run with seed ``s`` trains with seed ``s + CANDIDATE_SEED_STRIDE * i`` (candidate 0:
+the run's own seed), so the candidates of Table I's consecutive seeds never share one"""
 STUDENT_ARGS = ""
 """recipes/distill.py: its own defaults (weight copy, distillation on the expert data, picker odometry, the per-task
 snapshot selection and expert-action term)"""
@@ -71,3 +80,43 @@ def baseline_stage_args(task: str, extra: str = "") -> list[str]:
     """``recipes/bc_image.py`` / ``recipes/dt_image.py``: an image baseline of ``task`` on the method's expert data
     (``DATA_ARGS``); it evaluates nothing itself (the callers do)."""
     return ["--task", task, *data_args(task), "--eval-episodes", "0", *shlex.split(extra)]
+
+
+def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, candidates: int = 1,
+                  select_episodes: int = 30, margin: float = 1.0, parallel: bool = True) -> tuple[Path, int]:
+    """The privileged teacher: ``recipes/online_dt.py`` with ``args`` as the stage ``run_name``. With ``candidates``
+    > 1 the stage runs that many times, candidate ``i`` as ``<run_name>-c<i>`` with seed ``seed +
+    CANDIDATE_SEED_STRIDE * i`` (candidate 0 is the plain stage, bit for bit), each plays the same
+    ``select_episodes`` train-split episodes (``recipes/evaluate.py --split train``: configurations no evaluation
+    plays), and the kept one is the best unless candidate 0 is within ``margin`` standard errors of it
+    (:func:`~trakdis.evaluation.pick_candidate`). A seed's teacher can fail outright while the others reach the
+    expert (docs/recipes/online_dt.md); the train split tells the two apart. The choice and every candidate's
+    scores are written to ``<pipeline run dir>/<run_name>-selection.json``. Returns the kept teacher's run
+    directory and its index (callers name the stages that depend on it after it)."""
+    if candidates < 1 or (candidates > 1 and select_episodes < 2):
+        raise ValueError(f"teacher candidates {candidates} (>= 1) / selection episodes {select_episodes} (>= 2 "
+                         "to compare candidates)")
+    names = [run_name] + [f"{run_name}-c{i}" for i in range(1, candidates)]
+    teachers = [stages.run("online_dt", n, "policy.pt", args, seed=seed + CANDIDATE_SEED_STRIDE * i)
+                for i, n in enumerate(names)]
+    if candidates == 1:
+        return teachers[0], 0
+    import pandas as pd
+
+    from trakdis.evaluation import pick_candidate
+
+    scores = []
+    for n, teacher in zip(names, teachers):  # the same seed for every candidate: the same configurations
+        select = stages.run("evaluate", f"{n}-select", "summary.csv",
+                            ["--policy", str(teacher), "--split", "train", "--trials", str(select_episodes),
+                             "--videos", "0", *(["--parallel"] if parallel else [])], seed=seed)
+        episodes = pd.read_csv(select / "episodes.csv")
+        scores.append(episodes.loc[episodes["state_noise"] == 0, "final_normalized_performance"].tolist())
+    kept = pick_candidate(scores, margin=margin)
+    means = [sum(s) / len(s) for s in scores]
+    stages.pipeline.print(f"teacher candidates on {select_episodes} train-split episodes: "
+                          + ", ".join(f"{n} {m:.3f}" for n, m in zip(names, means)) + f"; {names[kept]} kept")
+    record = {"kept": kept, "teachers": [str(t) for t in teachers], "means": means, "scores": scores,
+              "margin": margin}
+    (stages.pipeline.dir / f"{run_name}-selection.json").write_text(json.dumps(record, indent=1))
+    return teachers[kept], kept

@@ -31,7 +31,7 @@ from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.progress import progress
 
 __all__ = ["COLLECTORS", "EpisodeResults", "EpisodeStream", "episode_frames", "episode_score", "markdown_table",
-           "paired_difference", "race_survivors", "run_episodes", "split_episodes", "standard_error", "summarize",
+           "paired_difference", "pick_candidate", "race_survivors", "run_episodes", "split_episodes", "standard_error", "summarize",
            "worker_env_fns", "write_summary_table"]
 
 
@@ -95,6 +95,23 @@ def paired_difference(before: Sequence[float] | np.ndarray, after: Sequence[floa
         raise ValueError(f"paired_difference: {a.size} and {b.size} values are not paired")
     d = b - a
     return float(d.mean()), standard_error(d)
+
+
+def pick_candidate(scores: Sequence[Sequence[float] | np.ndarray], *, margin: float = 1.0) -> int:
+    """The index of the candidate to keep, from each candidate's per-episode scores of the same configurations
+    (in the same order): the one with the highest mean if it beats candidate 0 (the default) by more than
+    ``margin`` standard errors of the paired difference, else 0. Noise alone does not trade the default for
+    another; a clearly better one replaces it (as :class:`~trakdis.training.SnapshotSelection` keeps snapshots)."""
+    if not len(scores):
+        raise ValueError("pick_candidate: no candidates")
+    if margin < 0:
+        raise ValueError(f"pick_candidate: margin must be >= 0, got {margin}")
+    means = [float(np.mean(s)) for s in scores]
+    best = max(range(len(scores)), key=lambda i: (means[i], -i))  # ties: the earlier candidate
+    if best == 0:
+        return 0
+    gain, se = paired_difference(scores[0], scores[best])
+    return best if gain > margin * se else 0
 
 
 def race_survivors(scores: Mapping[Any, Sequence[float] | np.ndarray], *, margin: float = 2.0) -> list:
