@@ -186,3 +186,24 @@ def test_parallel_workers_play_the_same_episodes_as_serial_envs():
         torch.testing.assert_close(ea["state"], eb["state"], rtol=0, atol=0)
         torch.testing.assert_close(ea["action"], eb["action"], rtol=0, atol=0)
     assert not torch.equal(a.episodes[0]["state"][0], c.episodes[0]["state"][0])
+
+
+def test_pick_candidate_keeps_the_first_unless_another_is_measurably_better():
+    from trakdis.evaluation import pick_candidate
+
+    first = [0.8, 0.7, 0.9, 0.75, 0.85]
+    collapsed = [0.1, 0.2, 0.0, 0.3, 0.15]
+    assert pick_candidate([first]) == 0
+    assert pick_candidate([collapsed, first, collapsed]) == 1  # clearly better: replaces the default
+    assert pick_candidate([collapsed, first, [x + 0.01 for x in first]]) == 2  # the best of the others
+    assert pick_candidate([first, collapsed]) == 0
+    noisy = [0.85, 0.65, 0.95, 0.7, 0.9]  # a higher mean (+0.01) within one standard error: the default stays
+    assert np.mean(noisy) > np.mean(first) and pick_candidate([first, noisy]) == 0
+    assert pick_candidate([first, noisy], margin=0.0) == 1
+    assert pick_candidate([first, list(first)]) == 0  # ties: the earlier one
+    with pytest.raises(ValueError, match="no candidates"):
+        pick_candidate([])
+    with pytest.raises(ValueError, match="margin"):
+        pick_candidate([first], margin=-1)
+    with pytest.raises(ValueError, match="not paired"):
+        pick_candidate([first, first[:3] + [1.0]])

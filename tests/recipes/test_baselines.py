@@ -209,7 +209,8 @@ def test_table1_stages_and_their_options():
     methods = [m for m in bench.METHODS if m != "expert"]  # the expert's stage reads the teacher's file
     cfg = parse_config(bench.Table1Config, ["--noise-levels", "0", "1e-3", "--noise-trials", "7", "--methods", *methods])
     stages = Recorder()
-    evals, robust = bench.run_task_seed(stages, cfg, "t", "ClothFold", 3)
+    evals, robust, students = bench.run_task_seed(stages, cfg, "t", "ClothFold", 3)
+    assert set(students) == {"trakdis", "no_aug", "no_pretrain", "no_distill"}
     assert set(evals) == set(methods) and set(robust) == {"trakdis", "trakdis_noise"}
     calls = stages.calls
     assert {seed for _, _, seed in calls.values()} == {3}
@@ -246,7 +247,7 @@ def test_table1_stages_and_their_options():
         stages = Recorder()
         cfg = parse_config(bench.Table1Config,
                            ["--noise-levels", *levels, "--noise-trials", "100", "--methods", *methods])
-        _, robust = bench.run_task_seed(stages, cfg, "t", "ClothFold", 3)
+        _, robust, _ = bench.run_task_seed(stages, cfg, "t", "ClothFold", 3)
         own = Path("runs") / "evaluate" / "t-ClothFold-s3-eval-trakdis"
         noise_eval = Path("runs") / "evaluate" / "t-ClothFold-s3-noise-trakdis"
         assert robust["trakdis"] == ((own, noise_eval) if ladder else (own,))

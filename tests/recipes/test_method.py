@@ -1,8 +1,12 @@
 """trakdis.method: the one definition of the method's stages, read by recipes/pipeline.py and benchmarks/table1.py."""
+import json
+from pathlib import Path
+
+import pandas as pd
 import pytest
 
-from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args,
-                            teacher_stage_args)
+from trakdis.method import (CANDIDATE_SEED_STRIDE, ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args,
+                            student_stage_args, teacher_stage, teacher_stage_args)
 from trakdis.utils.config import parse_config
 
 from .conftest import load_recipe
@@ -70,3 +74,79 @@ def test_every_stage_reads_the_same_expert_data_per_task():
     assert parse_config(configs["online_dt"], teacher_stage_args("ClothFoldDiagonalUnpinned")).data.close_radius is None
     overridden = teacher_stage_args("ClothFold", TEACHER_ARGS + " --data.close-radius 0.02")
     assert parse_config(configs["online_dt"], overridden).data.close_radius == 0.02
+
+
+class FakeStages:
+    """Records the stages run (nothing trained); a teacher candidate's selection episodes score ``scores[i]``."""
+
+    def __init__(self, root: Path, scores: list[list[float]]):
+        self.root, self.scores, self.calls, self.printed = root, scores, [], []
+        self.pipeline = type("Pipeline", (), {"dir": root, "print": lambda _, line: self.printed.append(line)})()
+
+    def run(self, recipe, run_name, output, args, *, seed=None):
+        self.calls.append((recipe, run_name, list(args), seed))
+        directory = self.root / recipe / run_name
+        directory.mkdir(parents=True, exist_ok=True)
+        if recipe == "evaluate" and run_name.endswith("-select"):  # the candidate whose policy this one plays
+            policy = Path(args[args.index("--policy") + 1]).name
+            i = int(policy.rsplit("-c", 1)[1]) if "-teacher-c" in policy else 0
+            pd.DataFrame({"state_noise": 0.0, "final_normalized_performance": self.scores[i]}).to_csv(
+                directory / "episodes.csv", index=False)
+        return directory
+
+    submit = run  # queued evaluations: recorded like the others
+
+
+def test_teacher_stage_keeps_the_candidate_that_folds_best_on_the_train_split(tmp_path):
+    """Candidate i: its own run and seed (0: the plain stage); all play the same train-split episodes; the kept one
+    and every score recorded; one candidate: the plain stage alone, nothing played."""
+    good, collapsed = [0.8, 0.85, 0.75, 0.9], [0.1, 0.3, 0.0, 0.2]
+    stages = FakeStages(tmp_path, [collapsed, good, [0.5, 0.6, 0.4, 0.5]])
+    args = teacher_stage_args("ClothFoldDiagonalPinned")
+    teacher, kept = teacher_stage(stages, "p-teacher", args, seed=3, candidates=3, select_episodes=4, parallel=False)
+    assert kept == 1 and teacher == tmp_path / "online_dt" / "p-teacher-c1"
+    trained = [(name, seed) for recipe, name, a, seed in stages.calls if recipe == "online_dt"]
+    assert trained == [("p-teacher", 3), ("p-teacher-c1", 3 + CANDIDATE_SEED_STRIDE),
+                       ("p-teacher-c2", 3 + 2 * CANDIDATE_SEED_STRIDE)]
+    assert all(a == args for recipe, _, a, _ in stages.calls if recipe == "online_dt")
+    selections = [(a, seed) for recipe, _, a, seed in stages.calls if recipe == "evaluate"]
+    assert len(selections) == 3 and {seed for _, seed in selections} == {3}  # the same configurations
+    for a, _ in selections:
+        assert a[a.index("--split") + 1] == "train" and a[a.index("--trials") + 1] == "4" and "--parallel" not in a
+    record = json.loads((tmp_path / "p-teacher-selection.json").read_text())
+    assert record["kept"] == 1 and record["scores"][1] == good and record["teachers"][1] == str(teacher)
+    assert "p-teacher-c1 kept" in stages.printed[-1]
+    # candidate 0 within a standard error of the best: it stays (the plain stage's chain)
+    stages = FakeStages(tmp_path / "b", [good, [0.85, 0.8, 0.8, 0.9]])
+    assert teacher_stage(stages, "q-teacher", args, seed=0, candidates=2, select_episodes=4)[1] == 0
+    stages = FakeStages(tmp_path / "c", [good])
+    assert teacher_stage(stages, "r-teacher", args, seed=5) == (tmp_path / "c" / "online_dt" / "r-teacher", 0)
+    assert [c[0] for c in stages.calls] == ["online_dt"] and not (tmp_path / "c" / "r-teacher-selection.json").exists()
+    for bad in ({"candidates": 0}, {"candidates": 2, "select_episodes": 1}):
+        with pytest.raises(ValueError, match="candidates"):
+            teacher_stage(stages, "s-teacher", args, seed=0, **bad)
+
+
+@pytest.mark.parametrize("bad", [["--teacher-candidates", "0"], ["--teacher-candidates", "2", "--teacher-select-episodes", "1"]])
+def test_a_bad_teacher_candidates_option_is_refused_while_parsing(bad):
+    for config in (load_recipe("pipeline").PipelineConfig, load_benchmark().Table1Config):
+        with pytest.raises((ValueError, SystemExit)):
+            parse_config(config, bad)
+
+
+def test_table1_names_the_stages_after_the_kept_teacher(tmp_path):
+    """--teacher-candidates 2: the encoder, the students and their evaluations of a seed whose candidate 1 is kept
+    are named <...>-c1-...; the baselines and the expert, which do not depend on the teacher, keep their names."""
+    bench = load_benchmark()
+    methods = ["teacher", "trakdis", "no_distill", "bc_image"]
+    cfg = parse_config(bench.Table1Config, ["--teacher-candidates", "2", "--noise-levels", "--methods", *methods])
+    stages = FakeStages(tmp_path, [[0.0, 0.1, 0.0], [0.8, 0.9, 0.7]])
+    evals, _, students = bench.run_task_seed(stages, cfg, "t", "ClothFold", 1)
+    names = [name for _, name, _, _ in stages.calls]
+    assert {"t-ClothFold-s1-c1-encoder", "t-ClothFold-s1-c1-trakdis", "t-ClothFold-s1-c1-no_distill",
+            "t-ClothFold-s1-c1-eval-teacher", "t-ClothFold-s1-bc_image", "t-ClothFold-s1-eval-bc_image"} <= set(names)
+    assert not any(n.endswith("-s1-encoder") for n in names)
+    encoder = next(a for r, n, a, _ in stages.calls if r == "train_encoder")
+    assert encoder[encoder.index("--teacher") + 1] == str(tmp_path / "online_dt" / "t-ClothFold-s1-teacher-c1")
+    assert students["trakdis"] == tmp_path / "distill" / "t-ClothFold-s1-c1-trakdis"
+    assert evals["teacher"] == tmp_path / "evaluate" / "t-ClothFold-s1-c1-eval-teacher"
