@@ -127,7 +127,8 @@ def test_teacher_stage_keeps_the_candidate_that_folds_best_on_the_train_split(tm
             teacher_stage(stages, "s-teacher", args, seed=0, **bad)
 
 
-@pytest.mark.parametrize("bad", [["--teacher-candidates", "0"], ["--teacher-candidates", "2", "--teacher-select-episodes", "1"]])
+@pytest.mark.parametrize("bad", [["--teacher-candidates", "0"],
+                                 ["--teacher-candidates", "2", "--teacher-select-episodes", "1"]])
 def test_a_bad_teacher_candidates_option_is_refused_while_parsing(bad):
     for config in (load_recipe("pipeline").PipelineConfig, load_benchmark().Table1Config):
         with pytest.raises((ValueError, SystemExit)):
