@@ -99,10 +99,12 @@ class Table1Config(RunConfig):
     the stage collects the images for the encoder and evaluates nothing itself, unless these say otherwise)"""
     teacher_candidates: int = 1
     """teacher stages per seed (candidate i: seed + 1000 i); the one that folds best on --teacher-select-episodes
-    train-split episodes is kept unless candidate 0 is within a standard error of it (trakdis.method.teacher_stage);
+    train-split episodes is kept (--teacher-select-margin; trakdis.method.teacher_stage);
     the stages after it are named after the kept candidate (<name>-<task>-s<seed>-c<i>-...)"""
     teacher_select_episodes: int = 30
     """train-split episodes each teacher candidate plays (with --teacher-candidates > 1)"""
+    teacher_select_margin: float = 0.0
+    """paired standard errors by which a teacher candidate must beat candidate 0 to replace it (0: the best mean)"""
     encoder_args: str = ENCODER_ARGS
     """options of recipes/train_encoder.py (the method's encoder, trained also on the teacher's weight-copied
     student's images and chosen by its episodes: trakdis.method; No-Aug adds --no-aug)"""
@@ -130,9 +132,11 @@ class Table1Config(RunConfig):
     the same numbers)"""
 
     def __post_init__(self):
-        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2):
+        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2) \
+                or not self.teacher_select_margin >= 0:
             raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
-                             f"{self.teacher_select_episodes}: >= 2 to compare candidates")
+                             f"{self.teacher_select_episodes}: >= 2 to compare candidates; --teacher-select-margin "
+                             f"{self.teacher_select_margin}: >= 0")
         if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
             raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1; "
                              f"--noise-trials {self.noise_trials}: >= 0")
@@ -200,7 +204,7 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
         # with the images the encoder stage reads (one collection, not two); evaluated by evaluate.py
         teacher, kept = teacher_stage(stages, f"{base}-teacher", teacher_stage_args(task, cfg.teacher_args), seed=seed,
                                       candidates=cfg.teacher_candidates, select_episodes=cfg.teacher_select_episodes,
-                                      parallel=cfg.parallel)
+                                      margin=cfg.teacher_select_margin, parallel=cfg.parallel)
         chain = f"{base}-c{kept}" if kept else base
         made("teacher", teacher)
 

@@ -65,9 +65,11 @@ class PipelineConfig(RunConfig):
     1 cm of Gaussian noise, so that its weights act on an encoder's estimates; trakdis.method)"""
     teacher_candidates: int = 1
     """teacher stages run (candidate i: --seed + 1000 i); the one that folds best on --teacher-select-episodes
-    train-split episodes is kept unless candidate 0 is within a standard error of it (trakdis.method.teacher_stage)"""
+    train-split episodes is kept (--teacher-select-margin; trakdis.method.teacher_stage)"""
     teacher_select_episodes: int = 30
     """train-split episodes each teacher candidate plays (with --teacher-candidates > 1)"""
+    teacher_select_margin: float = 0.0
+    """paired standard errors by which a teacher candidate must beat candidate 0 to replace it (0: the best mean)"""
     encoder_args: str = ENCODER_ARGS
     """extra options for recipes/train_encoder.py (default: noisy-expert images added to training; three
     encoders trained side by side, the one whose weight copy folds best on 30 train-split episodes kept;
@@ -84,9 +86,11 @@ class PipelineConfig(RunConfig):
     episodes, on 2 worker processes (--no-parallel: in turn; the same numbers)"""
 
     def __post_init__(self):  # checked while the command line is parsed, before any stage runs
-        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2):
+        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2) \
+                or not self.teacher_select_margin >= 0:
             raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
-                             f"{self.teacher_select_episodes}: >= 2 to compare candidates")
+                             f"{self.teacher_select_episodes}: >= 2 to compare candidates; --teacher-select-margin "
+                             f"{self.teacher_select_margin}: >= 0")
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -107,7 +111,7 @@ def main(argv=None) -> pd.DataFrame:
                                                   ["--policy", "expert", *evaluate])
         teacher, kept = teacher_stage(stages, f"{name}-teacher", teacher_args, seed=cfg.seed,
                                       candidates=cfg.teacher_candidates, select_episodes=cfg.teacher_select_episodes,
-                                      parallel=cfg.parallel)
+                                      margin=cfg.teacher_select_margin, parallel=cfg.parallel)
         chain = f"{name}-c{kept}" if kept else name  # the stages after the teacher, named after the kept candidate
         policies["teacher"] = str(teacher)
         if load_policy(teacher).horizon != horizon:  # a resumed teacher stage with another --horizon

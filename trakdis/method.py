@@ -83,16 +83,17 @@ def baseline_stage_args(task: str, extra: str = "") -> list[str]:
 
 
 def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, candidates: int = 1,
-                  select_episodes: int = 30, margin: float = 1.0, parallel: bool = True) -> tuple[Path, int]:
+                  select_episodes: int = 30, margin: float = 0.0, parallel: bool = True) -> tuple[Path, int]:
     """The privileged teacher: ``recipes/online_dt.py`` with ``args`` as the stage ``run_name``. With ``candidates``
     > 1 the stage runs that many times, candidate ``i`` as ``<run_name>-c<i>`` with seed ``seed +
     CANDIDATE_SEED_STRIDE * i`` (candidate 0 is the plain stage, bit for bit), each plays the same
     ``select_episodes`` train-split episodes (``recipes/evaluate.py --split train``: configurations no evaluation
-    plays), and the kept one is the best unless candidate 0 is within ``margin`` standard errors of it
-    (:func:`~trakdis.evaluation.pick_candidate`). A seed's teacher can fail outright while the others reach the
-    expert (docs/recipes/online_dt.md); the train split tells the two apart. The choice and every candidate's
-    scores are written to ``<pipeline run dir>/<run_name>-selection.json``. Returns the kept teacher's run
-    directory and its index (callers name the stages that depend on it after it)."""
+    plays), and the one with the best mean is kept unless candidate 0 is within ``margin`` paired standard errors
+    of it (:func:`~trakdis.evaluation.pick_candidate`; default 0: the best, ties to the earlier, as candidate 0 is
+    one more draw of the same stage). A seed's teacher can fail outright while the others reach the expert
+    (docs/recipes/distill.md); the train split tells them apart. The choice and every candidate's scores are
+    written to ``<pipeline run dir>/<run_name>-selection.json``. Returns the kept teacher's run directory and its
+    index (callers name the stages that depend on it after it)."""
     if candidates < 1 or (candidates > 1 and select_episodes < 2):
         raise ValueError(f"teacher candidates {candidates} (>= 1) / selection episodes {select_episodes} (>= 2 "
                          "to compare candidates)")

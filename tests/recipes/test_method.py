@@ -116,9 +116,11 @@ def test_teacher_stage_keeps_the_candidate_that_folds_best_on_the_train_split(tm
     record = json.loads((tmp_path / "p-teacher-selection.json").read_text())
     assert record["kept"] == 1 and record["scores"][1] == good and record["teachers"][1] == str(teacher)
     assert "p-teacher-c1 kept" in stages.printed[-1]
-    # candidate 0 within a standard error of the best: it stays (the plain stage's chain)
-    stages = FakeStages(tmp_path / "b", [good, [0.85, 0.8, 0.8, 0.9]])
-    assert teacher_stage(stages, "q-teacher", args, seed=0, candidates=2, select_episodes=4)[1] == 0
+    # the best mean by default; with a margin, candidate 0 within that many standard errors of the best stays
+    close = [0.85, 0.8, 0.8, 0.9]
+    stages = FakeStages(tmp_path / "b", [good, close])
+    assert teacher_stage(stages, "q-teacher", args, seed=0, candidates=2, select_episodes=4)[1] == 1
+    assert teacher_stage(stages, "q-teacher", args, seed=0, candidates=2, select_episodes=4, margin=1.0)[1] == 0
     stages = FakeStages(tmp_path / "c", [good])
     assert teacher_stage(stages, "r-teacher", args, seed=5) == (tmp_path / "c" / "online_dt" / "r-teacher", 0)
     assert [c[0] for c in stages.calls] == ["online_dt"] and not (tmp_path / "c" / "r-teacher-selection.json").exists()
@@ -128,7 +130,8 @@ def test_teacher_stage_keeps_the_candidate_that_folds_best_on_the_train_split(tm
 
 
 @pytest.mark.parametrize("bad", [["--teacher-candidates", "0"],
-                                 ["--teacher-candidates", "2", "--teacher-select-episodes", "1"]])
+                                 ["--teacher-candidates", "2", "--teacher-select-episodes", "1"],
+                                 ["--teacher-select-margin", "-1"]])
 def test_a_bad_teacher_candidates_option_is_refused_while_parsing(bad):
     for config in (load_recipe("pipeline").PipelineConfig, load_benchmark().Table1Config):
         with pytest.raises((ValueError, SystemExit)):
