@@ -68,7 +68,7 @@ LABELS = {"expert": "expert (state)", "teacher": "teacher (state)", "trakdis": "
           "bc_image": "BC-image", "dt_image": "DT-image", "no_aug": "No-Aug", "no_pretrain": "No-Pretrain",
           "no_distill": "No-Distill", "trakdis_noise": "TraKDis+noise"}
 CURVE_METHODS = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the paper's Fig. 6: same x axis (distill updates)
-STUDENT_OF_TEACHER = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the arms built on the teacher (and its encoder)
+STUDENT_OF_TEACHER = CURVE_METHODS  # the same four arms: each built on the teacher (and its encoder)
 
 # The paper's Table I (W. Chen and N. Rojas, RA-L 2024; ../shared/docs/method.md): mean and, where
 # given, std over 100 trials. A reference beside our numbers, not a result of this code.
