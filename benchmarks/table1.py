@@ -53,7 +53,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
-from trakdis.evaluation import markdown_table, paired_difference  # noqa: E402
+from trakdis.evaluation import markdown_table, paired_difference, read_final_scores  # noqa: E402
 from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, encoder_stage_args,  # noqa: E402
                             student_stage_args, teacher_stage, teacher_stage_args)
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
@@ -272,10 +272,7 @@ def _paper(task: str, method: str) -> str:
 def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[Path]]) -> pd.DataFrame:
     rows = []
     for (task, method), dirs in evals.items():
-        finals = []
-        for d in dirs:
-            episodes = pd.read_csv(d / "episodes.csv")
-            finals.append(episodes.loc[episodes["state_noise"] == 0, "final_normalized_performance"].to_numpy(float))
+        finals = [read_final_scores(d) for d in dirs]
         rows.append({"task": task, "method": method, **summarize_method(finals), "paper": _paper(task, method)})
     frame = pd.DataFrame(rows)
     atomic_write_bytes(run.dir / "table1.csv", frame.to_csv(index=False).encode())

@@ -102,22 +102,20 @@ def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, 
                 for i, n in enumerate(names)]
     if candidates == 1:
         return teachers[0], 0
-    import pandas as pd
-
-    from trakdis.evaluation import pick_candidate
+    from trakdis.evaluation import pick_candidate, read_final_scores
+    from trakdis.utils.checkpoint import atomic_write_bytes
 
     scores = []
     for n, teacher in zip(names, teachers):  # the same seed for every candidate: the same configurations
         select = stages.run("evaluate", f"{n}-select", "summary.csv",
                             ["--policy", str(teacher), "--split", "train", "--trials", str(select_episodes),
                              "--videos", "0", *(["--parallel"] if parallel else [])], seed=seed)
-        episodes = pd.read_csv(select / "episodes.csv")
-        scores.append(episodes.loc[episodes["state_noise"] == 0, "final_normalized_performance"].tolist())
+        scores.append(read_final_scores(select).tolist())
     kept = pick_candidate(scores, margin=margin)
     means = [sum(s) / len(s) for s in scores]
     stages.pipeline.print(f"teacher candidates on {select_episodes} train-split episodes: "
                           + ", ".join(f"{n} {m:.3f}" for n, m in zip(names, means)) + f"; {names[kept]} kept")
     record = {"kept": kept, "teachers": [str(t) for t in teachers], "means": means, "scores": scores,
               "margin": margin}
-    (stages.pipeline.dir / f"{run_name}-selection.json").write_text(json.dumps(record, indent=1))
+    atomic_write_bytes(stages.pipeline.dir / f"{run_name}-selection.json", json.dumps(record, indent=1).encode())
     return teachers[kept], kept

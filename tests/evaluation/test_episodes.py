@@ -207,3 +207,11 @@ def test_pick_candidate_keeps_the_first_unless_another_is_measurably_better():
         pick_candidate([first], margin=-1)
     with pytest.raises(ValueError, match="not paired"):
         pick_candidate([first, first[:3] + [1.0]])
+
+
+def test_read_final_scores_keeps_the_noise_free_episodes_in_order(tmp_path):
+    from trakdis.evaluation import read_final_scores
+
+    pd.DataFrame({"episode": [0, 1, 0, 1], "state_noise": [0.0, 0.0, 1e-3, 1e-3],
+                  "final_normalized_performance": [0.5, 0.7, 0.1, 0.2]}).to_csv(tmp_path / "episodes.csv", index=False)
+    np.testing.assert_array_equal(read_final_scores(tmp_path), [0.5, 0.7])

@@ -31,8 +31,8 @@ from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.progress import progress
 
 __all__ = ["COLLECTORS", "EpisodeResults", "EpisodeStream", "episode_frames", "episode_score", "markdown_table",
-           "paired_difference", "pick_candidate", "race_survivors", "run_episodes", "split_episodes", "standard_error", "summarize",
-           "worker_env_fns", "write_summary_table"]
+           "paired_difference", "pick_candidate", "race_survivors", "read_final_scores", "run_episodes",
+           "split_episodes", "standard_error", "summarize", "worker_env_fns", "write_summary_table"]
 
 
 @dataclass
@@ -95,6 +95,13 @@ def paired_difference(before: Sequence[float] | np.ndarray, after: Sequence[floa
         raise ValueError(f"paired_difference: {a.size} and {b.size} values are not paired")
     d = b - a
     return float(d.mean()), standard_error(d)
+
+
+def read_final_scores(directory: str | Path) -> np.ndarray:
+    """The per-episode final normalized performance of a ``recipes/evaluate.py`` run (its ``episodes.csv``),
+    noise-free episodes only, in the order played."""
+    episodes = pd.read_csv(Path(directory) / "episodes.csv")
+    return episodes.loc[episodes["state_noise"] == 0, "final_normalized_performance"].to_numpy(float)
 
 
 def pick_candidate(scores: Sequence[Sequence[float] | np.ndarray], *, margin: float = 1.0) -> int:
