@@ -27,14 +27,21 @@ from trakdis.training import SnapshotSelection, online_rollouts, train_rounds, t
 from trakdis.transforms import OutOfViewFill
 from trakdis.utils.run import Run, RunConfig, RunState
 
+MAIN_JOB_EPISODES = 20
+MAIN_JOB_LOG_STD_MIN = -1.5
+
+
 @dataclass
 class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     """Teacher: offline Decision Transformer pretraining on expert data, then online fine-tuning."""
 
     task: TaskName = "ClothFold"  # cloth task
     horizon: int = 100  # episode length
-    data: DataConfig = field(default_factory=DataConfig)  # expert dataset
-    model: DTConfig = field(default_factory=DTConfig)  # Decision Transformer
+    # the main job's data and head (docs/recipes/online_dt.md, "The main job's online phase against its control"):
+    # 20 demonstrations, so that the online phase has something to add; a log-std floor of -1.5, so that DAgger's
+    # grasp corrections do not swamp the clipped updates. The presets and the method's teacher keep 40 (200) and -2.5.
+    data: DataConfig = field(default_factory=lambda: DataConfig(episodes=MAIN_JOB_EPISODES))  # expert dataset
+    model: DTConfig = field(default_factory=lambda: DTConfig(log_std_min=MAIN_JOB_LOG_STD_MIN))  # Decision Transformer
     min_lr_fraction: float = 0.1  # cosine decay of --lr to this fraction by the end of pretraining (1: constant)
     online_lr: float | None = None  # constant lr of the online phase (default: the last offline one)
     batch_size: int = 64  # windows per update
@@ -55,7 +62,7 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     exploration_rtg: float | None = None  # initial return-to-go of the online rollouts (default: the evaluation's)
     offline_control: bool = False  # the online schedule without adding the rollouts to the buffer (the control)
     exploration: Literal["mean", "sample"] = "mean"  # the online rollouts' actions: the policy's mean, or samples
-    online_labels: Literal["executed", "expert"] = "executed"
+    online_labels: Literal["executed", "expert"] = "expert"
     """what the DT learns on its rollouts: the actions it executed (Online DT), or the scripted expert's
     action at each state it reached (DAgger; its context still reads the executed ones)"""
     select_episodes: int = 0
@@ -77,15 +84,16 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
                 raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= {low}")
 
 
-PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule
-    "model": dict(DTConfig.PAPER_SIZES), "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000,
+PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule (Online DT's executed labels)
+    "model": {**DTConfig.PAPER_SIZES, "log_std_min": DTConfig.log_std_min}, "online_labels": "executed",
+    "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000,
     "batch_size": 256, "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
     "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
     "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50},
     # issue 12's teacher on this 2-core CPU: 5x the demonstrations, about as many passes over them (19 against 24),
     # DAgger online, early stopping between the offline and the final teacher
-    "cpu": {"data": {"episodes": 200}, "offline_updates": 6000, "online_labels": "expert", "eval_episodes": 100,
-            "select_episodes": 30, "select_every": 8}}
+    "cpu": {"data": {"episodes": 200}, "model": {"log_std_min": DTConfig.log_std_min}, "offline_updates": 6000,
+            "online_labels": "expert", "eval_episodes": 100, "select_episodes": 30, "select_every": 8}}
 
 
 def main(argv=None) -> dict:

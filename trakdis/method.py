@@ -24,6 +24,9 @@ if TYPE_CHECKING:
 TEACHER_ARGS = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
 """recipes/online_dt.py: the offline teacher trained on states with 1 cm of Gaussian noise, so that its
 weights act on an encoder's estimates (docs/recipes/distill.md)"""
+MAIN_JOB_RESETS = "--data.episodes 40 --model.log-std-min -2.5 --online-labels executed"
+"""recipes/online_dt.py's main-job defaults that the teacher stage resets, before ``TEACHER_ARGS`` or a caller's: the
+encoder's 40 demonstrations (one dataset for both stages), DTConfig's log-std floor, Online DT's labels"""
 ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
 """recipes/train_encoder.py: noisy-expert images added to training; three encoders trained side by side, the
 one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest
@@ -55,8 +58,8 @@ def data_args(task: str) -> list[str]:
 def teacher_stage_args(task: str, extra: str = TEACHER_ARGS, *, mask_unseen_pickers: bool = False) -> list[str]:
     """``recipes/online_dt.py``: the expert dataset, collected with the images the encoder stage reads
     (one collection, not two), and the privileged teacher; it evaluates nothing itself (the callers do)."""
-    return ["--task", task, *data_args(task), "--collect-pixels", *_flags(mask_unseen_pickers=mask_unseen_pickers),
-            "--eval-episodes", "0", *shlex.split(extra)]
+    return ["--task", task, *shlex.split(MAIN_JOB_RESETS), *data_args(task), "--collect-pixels",
+            *_flags(mask_unseen_pickers=mask_unseen_pickers), "--eval-episodes", "0", *shlex.split(extra)]
 
 
 def encoder_stage_args(task: str, teacher: str | PathLike, extra: str = ENCODER_ARGS, *, parallel: bool = True,

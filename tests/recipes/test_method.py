@@ -20,6 +20,8 @@ def test_stage_args_parse_in_their_recipes_with_the_methods_defaults():
     teacher = parse_config(load_recipe("online_dt").OnlineDTConfig, teacher_stage_args("ClothFoldDiagonalPinned"))
     assert (teacher.task, teacher.collect_pixels, teacher.eval_episodes) == ("ClothFoldDiagonalPinned", True, 0)
     assert (teacher.state_noise, teacher.state_scale_floor, teacher.online_rounds) == (0.01, 0.02, 0)
+    # not the main job's (online_dt.py's defaults): the encoder's 40 demonstrations, DTConfig's log-std floor
+    assert (teacher.data.episodes, teacher.model.log_std_min, teacher.online_labels) == (40, -2.5, "executed")
     encoder = parse_config(load_recipe("train_encoder").TrainEncoderConfig,
                            encoder_stage_args("ClothFold", "runs/online_dt/t/policy.pt"))
     assert (encoder.teacher, encoder.members, encoder.select_episodes, encoder.extra_noise, encoder.parallel) == (
@@ -69,6 +71,8 @@ def test_every_stage_reads_the_same_expert_data_per_task():
               "bc_image": baseline_stage_args("ClothFold"), "dt_image": baseline_stage_args("ClothFold", "--updates 3")}
     for name, args in stages.items():
         assert parse_config(configs[name], args).data.close_radius == 0.01, name
+    assert parse_config(configs["online_dt"], stages["online_dt"]).data.episodes == parse_config(
+        configs["train_encoder"], stages["train_encoder"]).data.episodes  # one dataset for both stages
     assert parse_config(configs["dt_image"], stages["dt_image"]).updates == 3
     assert parse_config(configs["bc_image"], baseline_stage_args("ClothFoldDiagonalPinned")).eval_episodes == 0
     assert parse_config(configs["online_dt"], teacher_stage_args("ClothFoldDiagonalUnpinned")).data.close_radius is None

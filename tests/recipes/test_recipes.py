@@ -47,10 +47,9 @@ def test_online_dt_files_and_scores(teacher):
     assert frame["online/normalized_performance"].notna().sum() == 2
     ck = load_checkpoint(teacher / "checkpoint.pt")
     assert ck["step"] == 12 and ck["counters"]["rounds"] == 2 and ck["buffer"]["num_online_added"] == 4
-    # default buffer: as many slots as demonstrations; rollouts enter only by beating the worst one
-    assert ck["buffer"]["config"]["capacity"] == 4 and ck["buffer"]["config"]["replacement"] == "lowest_return"
-    kept = frame["online/kept"].dropna()
-    assert len(kept) == 2 and kept.between(0, 2).all() and ck["buffer"]["online"].sum() <= kept.sum()
+    # default (DAgger): the buffer holds the demonstrations and every rollout
+    assert ck["buffer"]["config"]["capacity"] == 4 + 2 * 2 and ck["buffer"]["online"].tolist() == [False] * 4 + [True] * 4
+    assert frame["online/kept"].dropna().tolist() == [2, 2]
     handle = load_policy(teacher)
     assert handle.kind == "teacher" and handle.horizon == HORIZON and handle.observation_key == "state"
     # the grasp commands are left out of the DT's action tokens (--model.hidden-action-dims, default: the task's)
@@ -88,23 +87,28 @@ def test_online_dt_serial_envs_and_cached_expert_give_the_same_run(workdir, data
 
 
 def test_online_dt_dagger_learns_the_experts_action_on_its_rollouts(workdir, dataset, teacher):
-    """--online-labels expert (DAgger): the buffer keeps every rollout beside the demonstrations, each
-    step labelled with the scripted expert's action at its state and step; the demonstrations' label is
-    their own action, so the offline phase is the plain run's, update for update."""
+    """The default --online-labels expert (DAgger): the buffer keeps every rollout beside the demonstrations, each
+    step labelled with the scripted expert's action at its state and step; the demonstrations' label is their own
+    action, so the offline phase is that of --online-labels executed (Online DT), update for update."""
     from trakdis.envs import expert_action
 
-    run_recipe(workdir, "online_dt", *online_dt_args("dagger", "--online-labels", "expert", "--eval-every", 0))
-    run_dir = workdir / "runs" / "online_dt" / "dagger"
-    buffer = load_checkpoint(run_dir / "checkpoint.pt")["buffer"]
-    assert buffer["config"]["capacity"] == 4 + 2 * 2 and "expert_action" in buffer["config"]["keys"]
-    assert buffer["online"].tolist() == [False] * 4 + [True] * 4  # every rollout kept, whatever its return
+    buffer = load_checkpoint(teacher / "checkpoint.pt")["buffer"]
+    assert "expert_action" in buffer["config"]["keys"]
     stored = buffer["replay_buffer"]["_storage"]["_storage"]
     state, action, label = stored["state"], stored["action"], stored["expert_action"]
     steps = torch.arange(HORIZON).expand(*state.shape[:2]).unsqueeze(-1)
     want = torch.as_tensor(expert_action("ClothFold", state.numpy(), steps.numpy()))
     torch.testing.assert_close(label[4:], want[4:])
     assert torch.equal(label[:4], action[:4]) and (label[4:] - action[4:]).abs().max() > 0.1
-    plain, dagger = read_log(teacher), read_log(run_dir)
+    run_recipe(workdir, "online_dt", *online_dt_args("executed", "--online-labels", "executed", "--eval-every", 0))
+    run_dir = workdir / "runs" / "online_dt" / "executed"
+    plain = load_checkpoint(run_dir / "checkpoint.pt")["buffer"]
+    # Online DT: as many slots as demonstrations; a rollout enters only by beating the worst one
+    assert plain["config"]["capacity"] == 4 and plain["config"]["replacement"] == "lowest_return"
+    assert "expert_action" not in plain["config"]["keys"]
+    kept = read_log(run_dir)["online/kept"].dropna()
+    assert len(kept) == 2 and kept.between(0, 2).all() and plain["online"].sum() <= kept.sum()
+    dagger, plain = read_log(teacher), read_log(run_dir)
     offline = lambda f: f.loc[f["phase"] == 0, ["step", "train/loss_nll"]].dropna().reset_index(drop=True)  # noqa: E731
     assert len(offline(plain)) >= 3
     pd.testing.assert_frame_equal(offline(plain), offline(dagger), check_exact=False, atol=1e-5)
@@ -400,6 +404,7 @@ def test_help(recipe, flags, capsys):
 
 
 def test_paper_preset_config():
+    from trakdis.modules import DTConfig
     from trakdis.utils.config import parse_config
 
     module = load_recipe("online_dt")
@@ -410,10 +415,13 @@ def test_paper_preset_config():
     assert cfg.data.episodes == 4  # explicit flags win over the preset
     dt = cfg.model.for_task(18, 8, horizon=100)
     assert (dt.embed_dim, dt.n_head, dt.context_len, dt.dropout, dt.attn_dropout) == (256, 16, 30, 0.1, 0.1)
+    assert cfg.online_labels == "executed" and cfg.model.log_std_min == -2.5  # Online DT; DTConfig's floor
     cfg = parse_config(module.OnlineDTConfig, ["--preset", "cpu"], presets=module.PRESETS)
     assert (cfg.data.episodes, cfg.offline_updates, cfg.online_labels, cfg.eval_episodes) == (200, 6000, "expert", 100)
     assert (cfg.select_episodes, cfg.select_every) == (30, 8)
-    assert cfg.model == module.OnlineDTConfig().model  # the default model
+    assert cfg.model == DTConfig()  # the library's default model, not the main job's log-std floor
+    main_job = module.OnlineDTConfig()
+    assert (main_job.data.episodes, main_job.model.log_std_min, main_job.online_labels) == (20, -1.5, "expert")
     module = load_recipe("distill")
     cfg = parse_config(module.DistillConfig, ["--preset", "paper"], presets=module.PRESETS)
     assert cfg.rounds == 60 and cfg.optimizer == "lamb"
@@ -445,7 +453,7 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     module = load_recipe("online_dt")
     d = module.OnlineDTConfig().model.for_task(18, 8, horizon=100)
     assert (d.embed_dim, d.n_layer, d.n_head, d.context_len, d.dropout, d.attn_dropout, d.loc_bound, d.log_std_min,
-            d.max_timestep) == (64, 2, 2, 20, 0.0, 0.0, 5.0, -2.5, 1024)
+            d.max_timestep) == (64, 2, 2, 20, 0.0, 0.0, 5.0, -1.5, 1024)  # the main job's floor (DTConfig's: -2.5)
     assert module.OnlineDTConfig().model.for_task(18, 8, horizon=2000).max_timestep == 2001
     old = config_to_dict(module.OnlineDTConfig())
     old["model"] = {"embed_dim": 16, "n_layer": 1, "n_head": 1, "context_len": 4, "dropout": 0.1, "loc_bound": 5.0,
