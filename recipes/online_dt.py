@@ -1,7 +1,9 @@
 """The privileged teacher: a Decision Transformer on the true reduced state, trained offline on
-expert data and then fine-tuned online (Online DT, Zheng et al. 2022), as in TraKDis.
+expert data and then fine-tuned online on its own rollouts, as in TraKDis: labelled with the scripted
+expert's actions (DAgger, the default) or with their own (``--online-labels executed``: Online DT,
+Zheng et al. 2022).
 
-    python recipes/online_dt.py                       # ClothFold
+    python recipes/online_dt.py                       # ClothFold: 20 demonstrations, DAgger (the main job)
     python recipes/online_dt.py --preset cpu          # the strongest teacher measured on a 2-core CPU (minutes)
     python recipes/online_dt.py --preset paper        # the paper's model and optimiser (slow on a CPU)
     python recipes/online_dt.py --resume              # continue the latest run after a kill
