@@ -26,7 +26,8 @@ TEACHER_ARGS = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
 weights act on an encoder's estimates (docs/recipes/distill.md)"""
 MAIN_JOB_RESETS = "--data.episodes 40 --model.log-std-min -2.5 --online-labels executed"
 """recipes/online_dt.py's main-job defaults that the teacher stage resets, before ``TEACHER_ARGS`` or a caller's: the
-encoder's 40 demonstrations (one dataset for both stages), DTConfig's log-std floor, Online DT's labels"""
+encoder's 40 demonstrations (one dataset for both stages), DTConfig's log-std floor, Online DT's labels. Not when the
+caller names a ``--preset``: every preset sets these itself, and explicit flags would override it."""
 ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
 """recipes/train_encoder.py: noisy-expert images added to training; three encoders trained side by side, the
 one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest
@@ -58,8 +59,11 @@ def data_args(task: str) -> list[str]:
 def teacher_stage_args(task: str, extra: str = TEACHER_ARGS, *, mask_unseen_pickers: bool = False) -> list[str]:
     """``recipes/online_dt.py``: the expert dataset, collected with the images the encoder stage reads
     (one collection, not two), and the privileged teacher; it evaluates nothing itself (the callers do)."""
-    return ["--task", task, *shlex.split(MAIN_JOB_RESETS), *data_args(task), "--collect-pixels",
-            *_flags(mask_unseen_pickers=mask_unseen_pickers), "--eval-episodes", "0", *shlex.split(extra)]
+    extra_args = shlex.split(extra)
+    preset = any(a == "--preset" or a.startswith("--preset=") for a in extra_args)
+    resets = [] if preset else shlex.split(MAIN_JOB_RESETS)
+    return ["--task", task, *resets, *data_args(task), "--collect-pixels",
+            *_flags(mask_unseen_pickers=mask_unseen_pickers), "--eval-episodes", "0", *extra_args]
 
 
 def encoder_stage_args(task: str, teacher: str | PathLike, extra: str = ENCODER_ARGS, *, parallel: bool = True,

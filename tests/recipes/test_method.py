@@ -22,6 +22,11 @@ def test_stage_args_parse_in_their_recipes_with_the_methods_defaults():
     assert (teacher.state_noise, teacher.state_scale_floor, teacher.online_rounds) == (0.01, 0.02, 0)
     # not the main job's (online_dt.py's defaults): the encoder's 40 demonstrations, DTConfig's log-std floor
     assert (teacher.data.episodes, teacher.model.log_std_min, teacher.online_labels) == (40, -2.5, "executed")
+    online_dt = load_recipe("online_dt")
+    for preset in ("--preset cpu", "--preset=cpu"):  # a preset given to the stage is not overridden by those resets
+        cpu = parse_config(online_dt.OnlineDTConfig, teacher_stage_args("ClothFold", f"{preset} --seed 3"),
+                           presets=online_dt.PRESETS)
+        assert (cpu.data.episodes, cpu.model.log_std_min, cpu.online_labels, cpu.seed) == (200, -2.5, "expert", 3)
     encoder = parse_config(load_recipe("train_encoder").TrainEncoderConfig,
                            encoder_stage_args("ClothFold", "runs/online_dt/t/policy.pt"))
     assert (encoder.teacher, encoder.members, encoder.select_episodes, encoder.extra_noise, encoder.parallel) == (
