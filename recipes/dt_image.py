@@ -4,7 +4,7 @@ on the expert dataset with the DT loss, without a pretrained state encoder (the 
     python recipes/dt_image.py --task ClothFold
     python recipes/evaluate.py --policy runs/dt_image/<name>          # 100 eval-split trials
 
-1. Expert data: the dataset of ``online_dt.py`` / ``train_encoder.py`` (``--data.*``), its images,
+1. Expert data: the dataset of ``train_encoder.py`` and the method's teacher stage (``--data.*``), its images,
    actions and rewards in the trajectory replay buffer (left-padded windows of ``K`` images,
    hindsight return-to-go), as the teacher's buffer holds states.
 2. Model: ``trakdis.modules.ImageTrunk`` (``--trunk.*``: the encoder's CNN, random shift of up to

@@ -53,7 +53,7 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     state_noise: float = 0.0  # std (metres) of Gaussian noise on the training windows' states (acting: exact)
     mask_unseen_pickers: bool = False  # train and act with a picker out of the 32x32 camera view as a fixed sentinel
     rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)
-    buffer_capacity: int | None = None  # trajectories in the replay buffer (default: the offline dataset's number)
+    buffer_capacity: int | None = None  # trajectories in the replay buffer (default: the dataset's; DAgger: +rollouts)
     buffer_replacement: Literal["oldest", "lowest_return"] = "lowest_return"
     """which trajectory a rollout replaces in a full buffer: the lowest-return one if it beats it, or the oldest"""
     early_windows: bool = True  # also sample windows that begin before an episode's first step (DT/ODT reference: no)
@@ -92,8 +92,8 @@ PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule 
     "batch_size": 256, "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
     "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
     "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50},
-    # issue 12's teacher on this 2-core CPU: 5x the demonstrations, about as many passes over them (19 against 24),
-    # DAgger online, early stopping between the offline and the final teacher
+    # issue 12's teacher on this 2-core CPU: 5x the method teacher's 40 demonstrations, about as many passes over
+    # them (19 against 24), DAgger online, early stopping between the offline and the final teacher
     "cpu": {"data": {"episodes": 200}, "model": {"log_std_min": DTConfig.log_std_min}, "offline_updates": 6000,
             "online_labels": "expert", "eval_episodes": 100, "select_episodes": 30, "select_every": 8}}
 

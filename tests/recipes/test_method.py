@@ -27,6 +27,11 @@ def test_stage_args_parse_in_their_recipes_with_the_methods_defaults():
         cpu = parse_config(online_dt.OnlineDTConfig, teacher_stage_args("ClothFold", f"{preset} --seed 3"),
                            presets=online_dt.PRESETS)
         assert (cpu.data.episodes, cpu.model.log_std_min, cpu.online_labels, cpu.seed) == (200, -2.5, "expert", 3)
+    for name, preset in online_dt.PRESETS.items():  # which is why: each preset sets all three itself
+        assert "episodes" in preset["data"] and "log_std_min" in preset["model"] and "online_labels" in preset, name
+    mine = parse_config(online_dt.OnlineDTConfig, teacher_stage_args(
+        "ClothFold", f"{TEACHER_ARGS} --data.episodes 200 --online-labels expert --model.log-std-min -1.5"))
+    assert (mine.data.episodes, mine.model.log_std_min, mine.online_labels) == (200, -1.5, "expert")  # a caller's win
     encoder = parse_config(load_recipe("train_encoder").TrainEncoderConfig,
                            encoder_stage_args("ClothFold", "runs/online_dt/t/policy.pt"))
     assert (encoder.teacher, encoder.members, encoder.select_episodes, encoder.extra_noise, encoder.parallel) == (

@@ -137,12 +137,16 @@ def test_online_dt_damaged_expert_cache_is_an_error_naming_it(workdir, dataset):
 
 
 def test_online_dt_offline_control(workdir, dataset):
-    """--offline-control: the same rollouts, updates and evaluations, but no rollout enters the buffer. With
+    """--offline-control: the same rollouts, updates and evaluations, but no rollout enters the buffer, so the
+    rollouts' labels (DAgger's, the default, or the executed ones) are never read: the same run with either. With
     --select-episodes (early stopping) the offline teacher and round 1 play the same train-split episodes and
     the kept one is the final teacher: its weights in policy.pt, its scores the final ones."""
-    run_recipe(workdir, "online_dt", *online_dt_args("control", "--offline-control", "--online-rounds", 1,
-                                                     "--expert-episodes", 0, "--online-lr", 1e-4, "--state-noise", 0.01,
-                                                     "--select-episodes", 2, "--select-every", 1))
+    args = ("--offline-control", "--online-rounds", 1, "--expert-episodes", 0, "--online-lr", 1e-4, "--state-noise", 0.01,
+            "--select-episodes", 2, "--select-every", 1)
+    run_recipe(workdir, "online_dt", *online_dt_args("control", *args))
+    run_recipe(workdir, "online_dt", *online_dt_args("control-executed", *args, "--online-labels", "executed"))
+    pd.testing.assert_frame_equal(read_log(workdir / "runs" / "online_dt" / "control"),
+                                  read_log(workdir / "runs" / "online_dt" / "control-executed"))
     run_dir = workdir / "runs" / "online_dt" / "control"
     ck = load_checkpoint(run_dir / "checkpoint.pt")
     assert ck["counters"]["rounds"] == 1 and ck["buffer"]["num_online_added"] == 0
