@@ -15,7 +15,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from trakdis.data import DataConfig, expert_targets, offline_state_buffer
 from trakdis.envs import task_spec
@@ -67,6 +67,7 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     online_labels: Literal["executed", "expert"] = "expert"
     """what the DT learns on its rollouts: the actions it executed (Online DT), or the scripted expert's
     action at each state it reached (DAgger; its context still reads the executed ones)"""
+    SAVED_WITHOUT: ClassVar[dict] = {"online_labels": "executed"}  # a run saved before the option resumes as it ran
     select_episodes: int = 0
     """early stopping: train-split episodes that the offline teacher and the teacher every --select-every rounds
     (and after the last) play; the one kept beats the earlier ones by --select-margin standard errors (0: the last)"""

@@ -469,6 +469,10 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     # an old section has no hidden_action_dims: the recipe's default for the task applies (docs/design.md)
     old_model = config_from_dict(module.OnlineDTConfig, old).model
     assert old_model.hidden_action_dims is None
+    # a run saved before --online-labels existed resumes with the labels it ran with, not today's default (DAgger)
+    assert config_from_dict(module.OnlineDTConfig, old).online_labels == "expert"
+    assert config_from_dict(module.OnlineDTConfig, {k: v for k, v in old.items() if k != "online_labels"}
+                            ).online_labels == "executed"
     assert old_model.for_task(18, 8, horizon=6, hidden_action_dims=(3, 7)).hidden_action_dims == (3, 7)
 
 

@@ -80,8 +80,11 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
 
 def config_from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
     """Rebuild dataclass ``cls`` from :func:`config_to_dict` output (missing keys keep their
-    defaults); an unknown key or a value of the wrong type raises an error naming the field."""
-    return dacite.from_dict(cls, dict(data), config=dacite.Config(cast=[tuple], strict=True))
+    defaults, or take ``cls.SAVED_WITHOUT``'s value: what a configuration saved before the field
+    existed ran with, where today's default differs); an unknown key or a value of the wrong type
+    raises an error naming the field."""
+    data = {**getattr(cls, "SAVED_WITHOUT", {}), **data}
+    return dacite.from_dict(cls, data, config=dacite.Config(cast=[tuple], strict=True))
 
 
 def save_config(cfg: Any, path: str | Path) -> Path:
