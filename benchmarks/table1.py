@@ -3,6 +3,7 @@
     python benchmarks/table1.py --name t1                          # 3 tasks x 3 seeds, 100 trials each
     python benchmarks/table1.py --name t1 --resume                 # continue after a kill
     python benchmarks/table1.py --name q --quick                   # small sizes (same as --preset quick)
+    python benchmarks/table1.py --name t1 --report                 # the table so far (runs nothing; beside the run)
     python benchmarks/table1.py --name t1 --tasks ClothFold --seeds 5
 
 For every task and seed (``--seed``, ``--seed`` + 1, ... ``--seeds`` of them) it runs, each as an
@@ -26,6 +27,8 @@ A stage whose output file exists is skipped and an interrupted one resumed, so `
 the same command again) continues where a kill stopped it. ``--methods`` picks a subset. The
 evaluations run as low-priority background processes, one at a time, as soon as their policy exists,
 beside the training stages that follow (``--overlap``; ``--no-overlap``: in turn; the same numbers).
+The full run takes hours; ``--report`` writes the files below from the evaluations finished so far, from
+another shell while it runs, and starts nothing.
 
 Writes ``<root>/table1/<name>/``: ``table1.md`` (the paper's layout, ours beside the paper's
 numbers, then per method mean +- std, 25th / 50th / 75th percentiles over all episodes of all
@@ -37,9 +40,11 @@ noise-free score; also a section of ``table1.md``) and ``robustness_<task>.png``
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -56,6 +61,7 @@ from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference, read_final_scores  # noqa: E402
 from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, encoder_stage_args,  # noqa: E402
                             student_stage_args, teacher_stage, teacher_stage_args)
+from trakdis.utils.config import load_config, parse_config  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
 from trakdis.utils.stages import Stages  # noqa: E402
@@ -130,6 +136,9 @@ class Table1Config(RunConfig):
     """the table's and the robustness study's evaluations as low-priority background processes, one at a
     time, beside the training stages that follow them (--no-overlap: each in turn when its policy exists;
     the same numbers)"""
+    report: bool = False
+    """start nothing: tabulate the stages of the run --name that have finished so far (it may still be
+    running; its config.json and timings.csv are read, not written), into its table1.md, CSVs and PNGs"""
 
     def __post_init__(self):
         if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2) \
@@ -191,7 +200,8 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
 
     def made(method: str, directory: Path) -> Path:  # a method's policy exists: evaluate it (and the expert)
         policies[method] = directory
-        if "expert" in methods and "expert" not in evals:
+        # (the policy file is missing only under --report, whose stages run nothing: the expert is then named below)
+        if "expert" in methods and "expert" not in evals and (directory / "policy.pt").exists():
             from trakdis.policies import load_policy
 
             # the expert plays episodes of the other policies' length
@@ -252,6 +262,44 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     return {m: evals[m] for m in METHODS if m in evals}, robust, students
 
 
+class FinishedStages:
+    """``--report``'s stages: each call returns the run directory that :func:`run_task_seed` names (its names, in
+    one place) and starts nothing; :func:`finished` then keeps the evaluations that have written their summary."""
+
+    def __init__(self, run: Run):
+        self.pipeline = run
+
+    def run(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None) -> Path:
+        return Path(self.pipeline.cfg.root) / recipe / run_name
+
+    submit = run
+
+    @contextlib.contextmanager
+    def queued(self) -> Iterator["FinishedStages"]:
+        yield self
+
+
+def finished(evals: dict, robust: dict) -> tuple[dict, dict, int, int]:
+    """The evaluations (and robustness ladders: every evaluation of one) that have finished; with their counts
+    before and after."""
+    done = lambda d: (d / "summary.csv").exists()  # noqa: E731  written last by recipes/evaluate.py
+    total = sum(len(v) for v in (*evals.values(), *robust.values()))
+    evals = {k: kept for k, v in evals.items() if (kept := [d for d in v if done(d)])}
+    robust = {k: kept for k, v in robust.items() if (kept := [ds for ds in v if ds and all(map(done, ds))])}
+    return evals, robust, total, sum(len(v) for v in (*evals.values(), *robust.values()))
+
+
+def open_report(argv: list[str]) -> Run:
+    """The run ``--name`` as saved (its ``config.json``, typed flags on top, e.g. ``--tasks``), written nowhere."""
+    cfg = parse_config(Table1Config, argv, presets=PRESETS, description=__doc__)
+    directory = Path(cfg.root) / "table1" / str(cfg.name)
+    if cfg.name is None or not (directory / "config.json").is_file():
+        raise FileNotFoundError(f"--report: {directory / 'config.json'} does not exist: name a run of this "
+                                "benchmark with --name (and --root)")
+    own = load_config(Table1Config, directory / "config.json")
+    return Run("table1", parse_config(Table1Config, argv, presets=PRESETS, description=__doc__, default=own), directory)
+
+
 def summarize_method(finals_per_seed: list[np.ndarray]) -> dict:
     """Pooled episodes of all seeds (mean, std, percentiles) and the spread of the per-seed means."""
     pooled = np.concatenate(finals_per_seed)
@@ -269,7 +317,7 @@ def _paper(task: str, method: str) -> str:
     return f"{mean:.3f}" if std is None else f"{mean:.3f} +- {std:.3f}"
 
 
-def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[Path]]) -> pd.DataFrame:
+def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[Path]], note: str = "") -> pd.DataFrame:
     rows = []
     for (task, method), dirs in evals.items():
         finals = [read_final_scores(d) for d in dirs]
@@ -291,6 +339,7 @@ def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[
     text = [f"# Table I, regenerated ({cfg.seeds} seeds x {cfg.trials} eval-split trials per method and task)", "",
             "Normalized performance at the episode's end; mean +- std over all episodes of all seeds. "
             "The paper's numbers (100 trials, one run) are beside ours; '-': the paper gives none.", "",
+            *([note, ""] if note else []),
             markdown_table(pd.DataFrame(wide)), "",
             "Per method: percentiles over all episodes; `seed_mean_*`: the spread of the per-seed means.", "",
             markdown_table(detail), ""]
@@ -389,10 +438,12 @@ def write_robustness(run: Run, cfg: Table1Config,
 def main(argv=None) -> pd.DataFrame:
     argv = list(sys.argv[1:] if argv is None else argv)
     argv = [a for x in argv for a in (("--preset", "quick") if x == "--quick" else (x,))]
-    run = Run.start("table1", Table1Config, argv, presets=PRESETS, description=__doc__)
+    report = parse_config(Table1Config, argv, presets=PRESETS, description=__doc__).report
+    run = open_report(argv) if report else Run.start("table1", Table1Config, argv, presets=PRESETS,
+                                                     description=__doc__)
     cfg = run.cfg
     seeds = list(range(cfg.seed, cfg.seed + cfg.seeds))
-    stages = Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
+    stages = FinishedStages(run) if report else Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
     evals: dict[tuple[str, str], list[Path]] = {}
     robust: dict[tuple[str, str], list[tuple[Path, ...]]] = {}
     students: dict[tuple[str, str], list[Path]] = {}
@@ -400,17 +451,32 @@ def main(argv=None) -> pd.DataFrame:
     with stages.queued():  # leaving it: every evaluation has run
         for task in cfg.tasks:
             for seed in seeds:
-                done, noise, arms = run_task_seed(stages, cfg, run.dir.name, task, seed)
+                try:
+                    done, noise, arms = run_task_seed(stages, cfg, run.dir.name, task, seed)
+                except FileNotFoundError as err:  # --report: a teacher candidates' selection not played yet
+                    if not report:
+                        raise
+                    run.print(f"{task} seed {seed}: nothing to tabulate yet ({err})")
+                    continue
                 for method, directory in arms.items():
                     students.setdefault((task, method), []).append(directory)
                 for method, directory in done.items():
                     evals.setdefault((task, method), []).append(directory)
                 for method, directories in noise.items():
                     robust.setdefault((task, method), []).append(directories)
-    write_tables(run, cfg, evals)
+    note = ""
+    if report:
+        evals, robust, total, n_done = finished(evals, robust)
+        if not evals:
+            raise FileNotFoundError(f"--report: no evaluation of run {run.dir} has finished yet ({total} to come)")
+        note = (f"So far: the {n_done} of {total} evaluations that have finished (`--report` while the run goes on; "
+                "the seeds column says how many seeds each row has).")
+        run.print(note)
+    write_tables(run, cfg, evals, note=note)
     pngs = write_curves(run, cfg, students) + write_robustness(run, cfg, robust)
-    run.print(f"wall time {time.perf_counter() - start:.0f} s; the stages run so far: {sum(stages.timings.values()):.0f} s "
-              "(timings.csv; background stages overlap the others)")
+    if not report:
+        run.print(f"wall time {time.perf_counter() - start:.0f} s; the stages run so far: "
+                  f"{sum(stages.timings.values()):.0f} s (timings.csv; background stages overlap the others)")
     run.print(f"wrote {run.dir / 'table1.md'}" + "".join(f", {p.name}" for p in pngs))
     print((run.dir / "table1.md").read_text())
     return pd.read_csv(run.dir / "table1.csv")

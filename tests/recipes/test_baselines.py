@@ -167,6 +167,19 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert "run directory:" not in capsys.readouterr().out  # no stage ran again
         pd.testing.assert_frame_equal(frame, again)
         assert len(pd.read_csv(out / "timings.csv")) == 20
+        # --report: the finished stages tabulated, nothing run, the run's config and timings untouched; an
+        # evaluation without its summary (still running) is left out of the table and counted as to come
+        saved = {f: (out / f).read_bytes() for f in ("config.json", "timings.csv")}
+        pd.testing.assert_frame_equal(frame, bench.main(["--name", "t1", "--report"]))
+        (workdir / "runs" / "evaluate" / "t1-ClothFold-s0-eval-dt_image" / "summary.csv").unlink()
+        partial = bench.main(["--name", "t1", "--report", "--tasks", "ClothFold"])
+        assert set(partial["method"]) == set(bench.METHODS) - {"dt_image"}
+        out_text = capsys.readouterr().out
+        assert "run directory:" not in out_text and "started" not in out_text and "done in" not in out_text
+        assert "So far: the 9 of 10 evaluations that have finished" in (out / "table1.md").read_text()
+        assert saved == {f: (out / f).read_bytes() for f in saved}
+        with pytest.raises(FileNotFoundError, match="table1/nope/config.json does not exist"):
+            bench.main(["--name", "nope", "--report"])
     finally:
         torch.set_num_threads(torch_threads)
 
