@@ -27,8 +27,8 @@ A stage whose output file exists is skipped and an interrupted one resumed, so `
 the same command again) continues where a kill stopped it. ``--methods`` picks a subset. The
 evaluations run as low-priority background processes, one at a time, as soon as their policy exists,
 beside the training stages that follow (``--overlap``; ``--no-overlap``: in turn; the same numbers).
-The full run takes hours; ``--report`` writes the files below from the evaluations finished so far, from
-another shell while it runs, and starts nothing.
+The full run takes hours; ``--report`` writes the files below into ``report/`` beside them, from the
+evaluations finished so far, from another shell while it runs, and starts nothing.
 
 Writes ``<root>/table1/<name>/``: ``table1.md`` (the paper's layout, ours beside the paper's
 numbers, then per method mean +- std, 25th / 50th / 75th percentiles over all episodes of all
@@ -41,6 +41,7 @@ noise-free score; also a section of ``table1.md``) and ``robustness_<task>.png``
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import sys
 import time
@@ -137,8 +138,9 @@ class Table1Config(RunConfig):
     time, beside the training stages that follow them (--no-overlap: each in turn when its policy exists;
     the same numbers)"""
     report: bool = False
-    """start nothing: tabulate the stages of the run --name that have finished so far (it may still be
-    running; its config.json and timings.csv are read, not written), into its table1.md, CSVs and PNGs"""
+    """start nothing: tabulate the evaluations of the run --name that have finished so far (it may still be
+    running), as it was configured (--tasks / --methods may narrow it), into <its folder>/report/ (the same files);
+    nothing of the run itself is written"""
 
     def __post_init__(self):
         if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2) \
@@ -161,7 +163,7 @@ class Table1Config(RunConfig):
 
 # --quick: one seed, 20 trials, short encoder/student/baseline training (the encoder: one member, 5 epochs and one
 # round of 10 weight-copy episodes, no noisy expert's dataset), no robustness study. The teacher keeps its 1500
-# offline updates: with 500 it scored 0.000 on all 20 trials (it never grasped; README, Table I). Every student arm
+# offline updates: with 500 it scored 0.000 on all 20 trials (it never grasped; docs/history.md). Every student arm
 # keeps its last round and its curve has two points (the copy, the last round): at stop 40 a 10-episode snapshot
 # selection, not the arms' training, decided their order, and its and the curves' episodes took a third of the run.
 # The method's 10 x 50 updates instead of 4 x 25 cost 6 more minutes and did not order ClothFold's arms (stop 41).
@@ -264,7 +266,9 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
 
 class FinishedStages:
     """``--report``'s stages: each call returns the run directory that :func:`run_task_seed` names (its names, in
-    one place) and starts nothing; :func:`finished` then keeps the evaluations that have written their summary."""
+    one place) and starts nothing; :func:`finished` then keeps the evaluations that have written their summary.
+    ``run`` is the report's own (its ``report/`` folder: a teacher candidates' choice is recorded there, not in the
+    benchmark run's folder)."""
 
     def __init__(self, run: Run):
         self.pipeline = run
@@ -279,25 +283,40 @@ class FinishedStages:
         yield self
 
 
-def finished(evals: dict, robust: dict) -> tuple[dict, dict, int, int]:
-    """The evaluations (and robustness ladders: every evaluation of one) that have finished; with their counts
-    before and after."""
+def finished(evals: dict, robust: dict, students: dict) -> tuple[dict, dict, dict, int, int]:
+    """The evaluations (and robustness ladders: every evaluation of one) that have finished, the students whose
+    training has (their curves); the count of evaluations before and after."""
     done = lambda d: (d / "summary.csv").exists()  # noqa: E731  written last by recipes/evaluate.py
     total = sum(len(v) for v in (*evals.values(), *robust.values()))
     evals = {k: kept for k, v in evals.items() if (kept := [d for d in v if done(d)])}
     robust = {k: kept for k, v in robust.items() if (kept := [ds for ds in v if ds and all(map(done, ds))])}
-    return evals, robust, total, sum(len(v) for v in (*evals.values(), *robust.values()))
+    students = {k: kept for k, v in students.items() if (kept := [d for d in v if (d / "policy.pt").exists()])}
+    return evals, robust, students, total, sum(len(v) for v in (*evals.values(), *robust.values()))
+
+
+REPORT_FLAGS = ("tasks", "methods")
+"""--report reads the run as it was configured; these may narrow what it tabulates (any other setting would name or
+label its stages otherwise), beside the settings of this invocation alone (``REPORT_OWN``)"""
+REPORT_OWN = ("name", "root", "resume", "report", "progress", "threads", "logger", "device", "stop_after")
 
 
 def open_report(argv: list[str]) -> Run:
-    """The run ``--name`` as saved (its ``config.json``, typed flags on top, e.g. ``--tasks``), written nowhere."""
+    """The run ``--name`` as saved (its ``config.json``; ``--tasks`` / ``--methods`` on top), writing into its
+    ``report/`` folder only: the run's own files (its final table among them) are left as they are."""
     cfg = parse_config(Table1Config, argv, presets=PRESETS, description=__doc__)
     directory = Path(cfg.root) / "table1" / str(cfg.name)
     if cfg.name is None or not (directory / "config.json").is_file():
         raise FileNotFoundError(f"--report: {directory / 'config.json'} does not exist: name a run of this "
                                 "benchmark with --name (and --root)")
     own = load_config(Table1Config, directory / "config.json")
-    return Run("table1", parse_config(Table1Config, argv, presets=PRESETS, description=__doc__, default=own), directory)
+    cfg = parse_config(Table1Config, argv, presets=PRESETS, description=__doc__, default=own)
+    changed = [f.name for f in dataclasses.fields(Table1Config) if f.name not in (*REPORT_FLAGS, *REPORT_OWN)
+               and getattr(cfg, f.name) != getattr(own, f.name)]
+    if changed:
+        raise ValueError(f"--report tabulates run {directory} as it was configured: only --tasks and --methods may "
+                         f"narrow it, not --{changed[0].replace('_', '-')}")
+    (directory / "report").mkdir(exist_ok=True)
+    return Run("table1", cfg, directory / "report")
 
 
 def summarize_method(finals_per_seed: list[np.ndarray]) -> dict:
@@ -452,7 +471,7 @@ def main(argv=None) -> pd.DataFrame:
         for task in cfg.tasks:
             for seed in seeds:
                 try:
-                    done, noise, arms = run_task_seed(stages, cfg, run.dir.name, task, seed)
+                    done, noise, arms = run_task_seed(stages, cfg, cfg.name, task, seed)
                 except FileNotFoundError as err:  # --report: a teacher candidates' selection not played yet
                     if not report:
                         raise
@@ -466,9 +485,9 @@ def main(argv=None) -> pd.DataFrame:
                     robust.setdefault((task, method), []).append(directories)
     note = ""
     if report:
-        evals, robust, total, n_done = finished(evals, robust)
+        evals, robust, students, total, n_done = finished(evals, robust, students)
         if not evals:
-            raise FileNotFoundError(f"--report: no evaluation of run {run.dir} has finished yet ({total} to come)")
+            raise FileNotFoundError(f"--report: no evaluation of run {run.dir.parent} has finished yet ({total} to come)")
         note = (f"So far: the {n_done} of {total} evaluations that have finished (`--report` while the run goes on; "
                 "the seeds column says how many seeds each row has).")
         run.print(note)

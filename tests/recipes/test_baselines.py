@@ -167,17 +167,20 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert "run directory:" not in capsys.readouterr().out  # no stage ran again
         pd.testing.assert_frame_equal(frame, again)
         assert len(pd.read_csv(out / "timings.csv")) == 20
-        # --report: the finished stages tabulated, nothing run, the run's config and timings untouched; an
-        # evaluation without its summary (still running) is left out of the table and counted as to come
-        saved = {f: (out / f).read_bytes() for f in ("config.json", "timings.csv")}
+        # --report: the finished evaluations tabulated into report/, nothing run, nothing of the run written; an
+        # evaluation without its summary (still running) is left out and counted as to come
+        saved = {f: (out / f).read_bytes() for f in ("config.json", "timings.csv", "table1.md", "table1.csv")}
         pd.testing.assert_frame_equal(frame, bench.main(["--name", "t1", "--report"]))
         (workdir / "runs" / "evaluate" / "t1-ClothFold-s0-eval-dt_image" / "summary.csv").unlink()
         partial = bench.main(["--name", "t1", "--report", "--tasks", "ClothFold"])
         assert set(partial["method"]) == set(bench.METHODS) - {"dt_image"}
         out_text = capsys.readouterr().out
         assert "run directory:" not in out_text and "started" not in out_text and "done in" not in out_text
-        assert "So far: the 9 of 10 evaluations that have finished" in (out / "table1.md").read_text()
+        assert "So far: the 9 of 10 evaluations that have finished" in (out / "report" / "table1.md").read_text()
+        assert (out / "report" / "curves_ClothFold.png").exists()
         assert saved == {f: (out / f).read_bytes() for f in saved}
+        with pytest.raises(ValueError, match="only --tasks and --methods may narrow it, not --trials"):
+            bench.main(["--name", "t1", "--report", "--trials", "5"])  # would label 2-trial evaluations as 5
         with pytest.raises(FileNotFoundError, match="table1/nope/config.json does not exist"):
             bench.main(["--name", "nope", "--report"])
     finally:
