@@ -487,7 +487,8 @@ def main(argv=None) -> pd.DataFrame:
     if report:
         evals, robust, students, total, n_done = finished(evals, robust, students)
         if not evals:
-            raise FileNotFoundError(f"--report: no evaluation of run {run.dir.parent} has finished yet ({total} to come)")
+            raise FileNotFoundError(f"--report: no evaluation of run {run.dir.parent} has finished yet "
+                                    f"({total} to come)")
         note = (f"So far: the {n_done} of {total} evaluations that have finished (`--report` while the run goes on; "
                 "the seeds column says how many seeds each row has).")
         run.print(note)
