@@ -284,14 +284,16 @@ class FinishedStages:
 
 
 def finished(evals: dict, robust: dict, students: dict) -> tuple[dict, dict, dict, int, int]:
-    """The evaluations (and robustness ladders: every evaluation of one) that have finished, the students whose
-    training has (their curves); the count of evaluations before and after."""
+    """The evaluations that have finished (per seed, ``None`` where not yet, so that seeds stay paired), the
+    robustness ladders all of whose evaluations have, the students whose training has (their curves); the count of
+    evaluations before and after."""
     done = lambda d: (d / "summary.csv").exists()  # noqa: E731  written last by recipes/evaluate.py
     total = sum(len(v) for v in (*evals.values(), *robust.values()))
-    evals = {k: kept for k, v in evals.items() if (kept := [d for d in v if done(d)])}
+    evals = {k: kept for k, v in evals.items() if any(kept := [d if done(d) else None for d in v])}
     robust = {k: kept for k, v in robust.items() if (kept := [ds for ds in v if ds and all(map(done, ds))])}
     students = {k: kept for k, v in students.items() if (kept := [d for d in v if (d / "policy.pt").exists()])}
-    return evals, robust, students, total, sum(len(v) for v in (*evals.values(), *robust.values()))
+    return evals, robust, students, total, sum(d is not None for v in evals.values() for d in v) + sum(
+        len(v) for v in robust.values())
 
 
 REPORT_FLAGS = ("tasks", "methods")
@@ -336,11 +338,30 @@ def _paper(task: str, method: str) -> str:
     return f"{mean:.3f}" if std is None else f"{mean:.3f} +- {std:.3f}"
 
 
-def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[Path]], note: str = "") -> pd.DataFrame:
+def versus_trakdis(ours: list[Path | None], theirs: list[Path | None]) -> dict:
+    """TraKDis minus another method, paired per episode within each seed (the same configurations): the mean over
+    seeds of the per-seed differences, its standard error over seeds (over the episodes with one seed), and on how
+    many seeds the difference is positive. Entries are per seed (``None``: not evaluated yet)."""
+    diffs = [paired_difference(read_final_scores(b), read_final_scores(a))
+             for a, b in zip(ours, theirs) if a is not None and b is not None]
+    if not diffs:
+        return {"minus": np.nan, "minus_se": np.nan, "seeds_above": np.nan, "paired_seeds": 0}
+    means = np.array([d for d, _ in diffs])
+    se = means.std(ddof=1) / np.sqrt(len(means)) if len(means) > 1 else diffs[0][1]
+    return {"minus": float(means.mean()), "minus_se": float(se), "seeds_above": int((means > 0).sum()),
+            "paired_seeds": len(means)}
+
+
+def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[Path | None]],
+                 note: str = "") -> pd.DataFrame:
+    """``evals``: per task and method its evaluations, one per seed in seed order (``None``: not finished)."""
     rows = []
     for (task, method), dirs in evals.items():
-        finals = [read_final_scores(d) for d in dirs]
-        rows.append({"task": task, "method": method, **summarize_method(finals), "paper": _paper(task, method)})
+        finals = [read_final_scores(d) for d in dirs if d is not None]
+        versus = {} if method == "trakdis" or (task, "trakdis") not in evals else {
+            f"trakdis_{k}": v for k, v in versus_trakdis(evals[task, "trakdis"], dirs).items()}
+        rows.append({"task": task, "method": method, **summarize_method(finals), "paper": _paper(task, method),
+                     **versus})
     frame = pd.DataFrame(rows)
     atomic_write_bytes(run.dir / "table1.csv", frame.to_csv(index=False).encode())
     methods = [m for m in METHODS if m in cfg.methods]
@@ -352,15 +373,19 @@ def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[
                 ours[LABELS[r["method"]]] = f"{r['mean']:.3f} +- {r['std']:.3f}"
         wide.append({"task": f"{task} (ours)", **ours})
         wide.append({"task": f"{task} (paper)", **{LABELS[m]: _paper(task, m) for m in methods}})
-    detail = frame.assign(method=frame["method"].map(LABELS))[
+    versus = [f"{r['trakdis_minus']:+.3f} +- {r['trakdis_minus_se']:.3f} ({r['trakdis_seeds_above']:.0f}/"
+              f"{r['trakdis_paired_seeds']:.0f})" if r.get("trakdis_paired_seeds", 0) > 0 else "" for r in rows]
+    detail = frame.assign(method=frame["method"].map(LABELS), **{"TraKDis - this": versus})[
         ["task", "method", "seeds", "n", "mean", "std", "p25", "p50", "p75", "seed_mean_std", "seed_mean_min",
-         "seed_mean_max", "paper"]]
+         "seed_mean_max", "paper", "TraKDis - this"]]
     text = [f"# Table I, regenerated ({cfg.seeds} seeds x {cfg.trials} eval-split trials per method and task)", "",
             "Normalized performance at the episode's end; mean +- std over all episodes of all seeds. "
             "The paper's numbers (100 trials, one run) are beside ours; '-': the paper gives none.", "",
             *([note, ""] if note else []),
             markdown_table(pd.DataFrame(wide)), "",
-            "Per method: percentiles over all episodes; `seed_mean_*`: the spread of the per-seed means.", "",
+            "Per method: percentiles over all episodes; `seed_mean_*`: the spread of the per-seed means; "
+            "`TraKDis - this`: paired per episode within each seed, the mean over seeds +- its standard error over "
+            "seeds (over episodes with one seed), and on how many seeds TraKDis is above.", "",
             markdown_table(detail), ""]
     atomic_write_bytes(run.dir / "table1.md", "\n".join(text).encode())
     return frame

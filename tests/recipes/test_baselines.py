@@ -128,8 +128,17 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert set(frame["method"]) == set(bench.METHODS) and (frame["n"] == 2).all() and (frame["seeds"] == 1).all()
         md = (out / "table1.md").read_text()
         assert "| ClothFold (ours) |" in md and "| ClothFold (paper) | 0.706 +- 0.159 | 0.740 +- 0.111 | 0.583 +- 0.190 |" in md
-        for label in ("BC-image", "DT-image", "No-Aug", "No-Pretrain", "No-Distill", "p25", "seed_mean_std"):
+        for label in ("BC-image", "DT-image", "No-Aug", "No-Pretrain", "No-Distill", "p25", "seed_mean_std",
+                      "TraKDis - this"):
             assert label in md, label
+        # TraKDis minus each method, paired per episode (one seed: the standard error over its episodes)
+        evaluations = workdir / "runs" / "evaluate"
+        ours = pd.read_csv(evaluations / "t1-ClothFold-s0-eval-trakdis" / "episodes.csv")["final_normalized_performance"]
+        theirs = pd.read_csv(evaluations / "t1-ClothFold-s0-eval-no_pretrain" / "episodes.csv")["final_normalized_performance"]
+        row = frame.set_index("method").loc["no_pretrain"]
+        assert np.isclose(row["trakdis_minus"], (ours - theirs).mean()) and row["trakdis_paired_seeds"] == 1
+        assert np.isclose(row["trakdis_minus_se"], (ours - theirs).std(ddof=1) / np.sqrt(2))
+        assert np.isnan(frame.set_index("method").loc["trakdis", "trakdis_minus"])
         for png in ("curves_ClothFold.png", "robustness_ClothFold.png"):
             assert cv2.imread(str(out / png)) is not None, png
         # the robustness study: both students at both noise levels, two episodes each
@@ -278,6 +287,26 @@ def test_table1_stages_and_their_options():
                                                                   "--methods", *methods]), "t", "ClothFold", 0)
     assert not any("--parallel" in args for _, args, _ in stages.calls.values()) and not stages.submitted
     assert not any("noise" in name for name in stages.calls)  # no robustness study
+
+
+def test_table1_versus_trakdis_pairs_within_seeds(tmp_path):
+    """TraKDis minus a method: per seed over the same configurations, then over seeds (a seed that one of them has
+    not finished yet is left out of the pairs, not shifted onto another)."""
+    bench = load_benchmark()
+
+    def evaluation(name, scores):
+        directory = tmp_path / name
+        directory.mkdir()
+        pd.DataFrame({"state_noise": 0.0, "final_normalized_performance": scores}).to_csv(directory / "episodes.csv")
+        return directory
+
+    ours = [evaluation("t0", [0.8, 0.6]), evaluation("t1", [0.7, 0.7]), evaluation("t2", [0.9, 0.5])]
+    theirs = [evaluation("a0", [0.5, 0.5]), None, evaluation("a2", [0.8, 0.6])]
+    out = bench.versus_trakdis(ours, theirs)
+    per_seed = np.array([0.2, 0.0])  # seed 0: (0.3 + 0.1) / 2; seed 2: (0.1 - 0.1) / 2
+    assert np.isclose(out["minus"], per_seed.mean()) and out["paired_seeds"] == 2 and out["seeds_above"] == 1
+    assert np.isclose(out["minus_se"], per_seed.std(ddof=1) / np.sqrt(2))
+    assert bench.versus_trakdis(ours, [None, None, None])["paired_seeds"] == 0
 
 
 def test_table1_help_and_quick_preset(capsys):
