@@ -59,7 +59,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
-from trakdis.evaluation import markdown_table, paired_difference, read_final_scores  # noqa: E402
+from trakdis.evaluation import markdown_table, paired_difference, read_final_scores, standard_error  # noqa: E402
 from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, encoder_stage_args,  # noqa: E402
                             student_stage_args, teacher_stage, teacher_stage_args)
 from trakdis.utils.config import load_config, parse_config  # noqa: E402
@@ -302,10 +302,10 @@ label its stages otherwise), beside the settings of this invocation alone (``REP
 REPORT_OWN = ("name", "root", "resume", "report", "progress", "threads", "logger", "device", "stop_after")
 
 
-def open_report(argv: list[str]) -> Run:
-    """The run ``--name`` as saved (its ``config.json``; ``--tasks`` / ``--methods`` on top), writing into its
-    ``report/`` folder only: the run's own files (its final table among them) are left as they are."""
-    cfg = parse_config(Table1Config, argv, presets=PRESETS, description=__doc__)
+def open_report(cfg: Table1Config, argv: list[str]) -> Run:
+    """The run ``--name`` of ``cfg`` (``argv`` parsed on the defaults) as saved (its ``config.json``; ``--tasks`` /
+    ``--methods`` on top), writing into its ``report/`` folder only: the run's own files (its final table among them)
+    are left as they are."""
     directory = Path(cfg.root) / "table1" / str(cfg.name)
     if cfg.name is None or not (directory / "config.json").is_file():
         raise FileNotFoundError(f"--report: {directory / 'config.json'} does not exist: name a run of this "
@@ -338,30 +338,29 @@ def _paper(task: str, method: str) -> str:
     return f"{mean:.3f}" if std is None else f"{mean:.3f} +- {std:.3f}"
 
 
-def versus_trakdis(ours: list[Path | None], theirs: list[Path | None]) -> dict:
+def versus_trakdis(ours: list[np.ndarray | None], theirs: list[np.ndarray | None]) -> dict:
     """TraKDis minus another method, paired per episode within each seed (the same configurations): the mean over
     seeds of the per-seed differences, its standard error over seeds (over the episodes with one seed), and on how
-    many seeds the difference is positive. Entries are per seed (``None``: not evaluated yet)."""
-    diffs = [paired_difference(read_final_scores(b), read_final_scores(a))
-             for a, b in zip(ours, theirs) if a is not None and b is not None]
+    many seeds the difference is positive. Entries are per-seed scores (``None``: not evaluated yet)."""
+    diffs = [paired_difference(b, a) for a, b in zip(ours, theirs) if a is not None and b is not None]
     if not diffs:
         return {"minus": np.nan, "minus_se": np.nan, "seeds_above": np.nan, "paired_seeds": 0}
     means = np.array([d for d, _ in diffs])
-    se = means.std(ddof=1) / np.sqrt(len(means)) if len(means) > 1 else diffs[0][1]
-    return {"minus": float(means.mean()), "minus_se": float(se), "seeds_above": int((means > 0).sum()),
+    se = standard_error(means) if len(means) > 1 else diffs[0][1]
+    return {"minus": float(means.mean()), "minus_se": se, "seeds_above": int((means > 0).sum()),
             "paired_seeds": len(means)}
 
 
 def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[Path | None]],
                  note: str = "") -> pd.DataFrame:
     """``evals``: per task and method its evaluations, one per seed in seed order (``None``: not finished)."""
+    scores = {key: [None if d is None else read_final_scores(d) for d in dirs] for key, dirs in evals.items()}
     rows = []
-    for (task, method), dirs in evals.items():
-        finals = [read_final_scores(d) for d in dirs if d is not None]
-        versus = {} if method == "trakdis" or (task, "trakdis") not in evals else {
-            f"trakdis_{k}": v for k, v in versus_trakdis(evals[task, "trakdis"], dirs).items()}
-        rows.append({"task": task, "method": method, **summarize_method(finals), "paper": _paper(task, method),
-                     **versus})
+    for (task, method), per_seed in scores.items():
+        versus = {} if method == "trakdis" or (task, "trakdis") not in scores else {
+            f"trakdis_{k}": v for k, v in versus_trakdis(scores[task, "trakdis"], per_seed).items()}
+        rows.append({"task": task, "method": method, **summarize_method([f for f in per_seed if f is not None]),
+                     "paper": _paper(task, method), **versus})
     frame = pd.DataFrame(rows)
     atomic_write_bytes(run.dir / "table1.csv", frame.to_csv(index=False).encode())
     methods = [m for m in METHODS if m in cfg.methods]
@@ -482,9 +481,10 @@ def write_robustness(run: Run, cfg: Table1Config,
 def main(argv=None) -> pd.DataFrame:
     argv = list(sys.argv[1:] if argv is None else argv)
     argv = [a for x in argv for a in (("--preset", "quick") if x == "--quick" else (x,))]
-    report = parse_config(Table1Config, argv, presets=PRESETS, description=__doc__).report
-    run = open_report(argv) if report else Run.start("table1", Table1Config, argv, presets=PRESETS,
-                                                     description=__doc__)
+    parsed = parse_config(Table1Config, argv, presets=PRESETS, description=__doc__)
+    report = parsed.report
+    run = open_report(parsed, argv) if report else Run.start("table1", Table1Config, argv, presets=PRESETS,
+                                                             description=__doc__)
     cfg = run.cfg
     seeds = list(range(cfg.seed, cfg.seed + cfg.seeds))
     stages = FinishedStages(run) if report else Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
