@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 from dataclasses import dataclass
 
 import pandas as pd
@@ -48,6 +50,42 @@ def test_fresh_stop_resume(tmp_path):
     assert (run.dir / "curves.png").exists()
     with pytest.raises(FileExistsError):
         train(["--root", root, "--name", "a"])
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="run directories are locked with fcntl (POSIX)")
+def test_a_run_directory_held_by_another_process_is_refused_untouched(tmp_path):
+    """A second process resuming (or starting) a run that is still going is refused, naming the holder, before
+    it writes anything; once the holder ends, the same command resumes."""
+    root = str(tmp_path)
+    run, _ = train(["--root", root, "--name", "a", "--stop-after", "2", "--no-progress"])
+    _release_all()  # as if this run had been killed: another process takes the run directory over
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(run.dir / ".lock")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = _tree(tmp_path)
+        with pytest.raises(RuntimeError, match=rf"run directory .*a is in use by another process \(pid {holder.pid}\)"):
+            train(["--root", root, "--resume", "--name", "a", "--lr", "0.5"])
+        assert _tree(tmp_path) == before
+    finally:
+        holder.kill(), holder.wait()
+    run, step = train(["--root", root, "--resume", "--name", "a", "--no-progress"])
+    assert step == 6 and json.loads((run.dir / "config.json").read_text())["lr"] == 0.1
+
+
+_HOLD = """import fcntl, os, sys, time
+fd = os.open(sys.argv[1], os.O_RDWR)
+fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # fails at once if this test still held it
+os.ftruncate(fd, 0), os.pwrite(fd, str(os.getpid()).encode(), 0)
+print("held", flush=True)
+time.sleep(120)
+"""
+
+
+def _release_all():
+    from trakdis.utils import run as run_module
+
+    for directory in list(run_module._HELD):
+        run_module._release_run_dir(directory)
 
 
 def _tree(root):

@@ -22,12 +22,15 @@ the CSV log is truncated to the checkpoint's step so that rows are neither lost 
 which is how the tests simulate a killed run. ``--logger tensorboard`` / ``--logger wandb`` log
 every ``run.log`` to TorchRL's TensorBoard or W&B logger as well (the wide CSV stays: the recipes
 read it back for the curves); the backend's state is saved in the checkpoint, so ``--resume``
-continues the same event directory or W&B run.
+continues the same event directory or W&B run. One process at a time holds a run directory (an advisory
+lock on its ``.lock`` file, taken before ``config.json`` is written, released by ``finish`` or at exit): a second
+``--resume`` of a run that is still going is refused, naming the process, instead of both writing its files.
 """
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import os
 import random
 import sys
@@ -46,6 +49,40 @@ from .logger import WideCSVLogger, check_logger_backend, make_run_dir, make_torc
 from .plot import plot_csv
 
 __all__ = ["RunConfig", "Run", "RunState", "seed_everything"]
+
+try:
+    import fcntl
+except ImportError:  # not POSIX (Windows): run directories are not locked
+    fcntl = None
+
+_HELD: dict[Path, int] = {}  # run directory -> the descriptor of its locked .lock file, in this process
+
+
+def _hold_run_dir(directory: Path) -> None:
+    """Lock ``directory/.lock`` for this process (again in the same process: a no-op, as when a test resumes a
+    run in the process that started it); another process holding it raises, naming its pid."""
+    key = directory.resolve()
+    if fcntl is None or key in _HELD:
+        return
+    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as err:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        if err.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+            raise
+        raise RuntimeError(f"run directory {directory} is in use by another process (pid {holder}): wait for it "
+                           f"to end, or stop it, before running or resuming this run") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    _HELD[key] = fd
+
+
+def _release_run_dir(directory: Path) -> None:
+    fd = _HELD.pop(directory.resolve(), None)
+    if fd is not None:
+        os.close(fd)  # closing the only descriptor of the lock releases it
 
 
 @dataclass
@@ -121,6 +158,7 @@ class Run:
             own = dataclasses.replace(load_config(cfg_cls, saved), stop_after=None)
             cfg = parse_config(cfg_cls, argv, presets=presets, description=description, default=own)
             check_logger_backend(cfg.logger)
+        _hold_run_dir(directory)  # before anything of the run is written
         cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
         save_config(cfg, saved)
         run = cls(recipe, cfg, directory)
@@ -193,7 +231,13 @@ class Run:
 
     def finish(self, *, columns: Sequence[str] | None = None) -> Path | None:
         """Flush the log and write ``curves.png`` (returns its path, or None without a log): the
-        curves of ``columns`` that the log has (default: every numeric column)."""
+        curves of ``columns`` that the log has (default: every numeric column); the run directory is released."""
+        try:
+            return self._finish(columns)
+        finally:
+            _release_run_dir(self.dir)
+
+    def _finish(self, columns: Sequence[str] | None) -> Path | None:
         if self._backend is not None:
             self._backend.close()
             self._backend = None
