@@ -61,7 +61,7 @@ from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference, read_final_scores, standard_error  # noqa: E402
 from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, encoder_stage_args,  # noqa: E402
-                            student_stage_args, teacher_stage, teacher_stage_args)
+                            student_stage_args, teacher_candidates, teacher_stage, teacher_stage_args)
 from trakdis.utils.config import load_config, parse_config  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
@@ -104,8 +104,9 @@ class Table1Config(RunConfig):
     teacher_args: str = TEACHER_ARGS
     """options of recipes/online_dt.py (the method's teacher, as recipes/pipeline.py runs it: trakdis.method;
     the stage collects the images for the encoder and evaluates nothing itself, unless these say otherwise)"""
-    teacher_candidates: int = 1
-    """teacher stages per seed (candidate i: seed + 1000 i); the one that folds best on --teacher-select-episodes
+    teacher_candidates: int | None = None
+    """teacher stages per seed (default: the task's, trakdis.method.TEACHER_CANDIDATES: 3 on the diagonal folds, 1
+    on ClothFold) (candidate i: seed + 1000 i); the one that folds best on --teacher-select-episodes
     train-split episodes is kept (--teacher-select-margin; trakdis.method.teacher_stage);
     the stages after it are named after the kept candidate (<name>-<task>-s<seed>-c<i>-...)"""
     teacher_select_episodes: int = 30
@@ -143,7 +144,8 @@ class Table1Config(RunConfig):
     nothing of the run itself is written"""
 
     def __post_init__(self):
-        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2) \
+        n = self.teacher_candidates  # None: the task's default, which may be more than one
+        if (n is not None and n < 1) or ((n is None or n > 1) and self.teacher_select_episodes < 2) \
                 or not self.teacher_select_margin >= 0:
             raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
                              f"{self.teacher_select_episodes}: >= 2 to compare candidates; --teacher-select-margin "
@@ -176,6 +178,7 @@ PRESETS = {"quick": {
     "bc_args": "--epochs 5",
     "dt_image_args": "--updates 300",
     "noise_levels": (),  # no robustness study (add it with --noise-levels 0 1e-3 1e-2 ...)
+    "teacher_candidates": 1,  # the diagonal folds' three would take it past 30 minutes
 }}
 
 def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
@@ -215,7 +218,8 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     if needs_teacher:
         # with the images the encoder stage reads (one collection, not two); evaluated by evaluate.py
         teacher, kept = teacher_stage(stages, f"{base}-teacher", teacher_stage_args(task, cfg.teacher_args), seed=seed,
-                                      candidates=cfg.teacher_candidates, select_episodes=cfg.teacher_select_episodes,
+                                      candidates=teacher_candidates(task, cfg.teacher_candidates),
+                                      select_episodes=cfg.teacher_select_episodes,
                                       margin=cfg.teacher_select_margin, parallel=cfg.parallel)
         chain = f"{base}-c{kept}" if kept else base
         made("teacher", teacher)

@@ -44,7 +44,7 @@ import pandas as pd
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import write_summary_table
 from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args,
-                            teacher_stage, teacher_stage_args)
+                            teacher_candidates, teacher_stage, teacher_stage_args)
 from trakdis.policies import load_policy
 from trakdis.utils.config import parse_config
 from trakdis.utils.run import Run, RunConfig
@@ -63,8 +63,9 @@ class PipelineConfig(RunConfig):
     teacher_args: str = TEACHER_ARGS
     """extra options for recipes/online_dt.py (default: the offline teacher trained on states with
     1 cm of Gaussian noise, so that its weights act on an encoder's estimates; trakdis.method)"""
-    teacher_candidates: int = 1
-    """teacher stages run (candidate i: --seed + 1000 i); the one that folds best on --teacher-select-episodes
+    teacher_candidates: int | None = None
+    """teacher stages run (default: the task's, trakdis.method.TEACHER_CANDIDATES: 3 on the diagonal folds, 1 on
+    ClothFold) (candidate i: --seed + 1000 i); the one that folds best on --teacher-select-episodes
     train-split episodes is kept (--teacher-select-margin; trakdis.method.teacher_stage)"""
     teacher_select_episodes: int = 30
     """train-split episodes each teacher candidate plays (with --teacher-candidates > 1)"""
@@ -86,7 +87,8 @@ class PipelineConfig(RunConfig):
     episodes, on 2 worker processes (--no-parallel: in turn; the same numbers)"""
 
     def __post_init__(self):  # checked while the command line is parsed, before any stage runs
-        if self.teacher_candidates < 1 or (self.teacher_candidates > 1 and self.teacher_select_episodes < 2) \
+        n = self.teacher_candidates  # None: the task's default, which may be more than one
+        if (n is not None and n < 1) or ((n is None or n > 1) and self.teacher_select_episodes < 2) \
                 or not self.teacher_select_margin >= 0:
             raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
                              f"{self.teacher_select_episodes}: >= 2 to compare candidates; --teacher-select-margin "
@@ -110,7 +112,8 @@ def main(argv=None) -> pd.DataFrame:
             directories["expert"] = stages.submit("evaluate", f"{name}-eval-expert", "summary.csv",
                                                   ["--policy", "expert", *evaluate])
         teacher, kept = teacher_stage(stages, f"{name}-teacher", teacher_args, seed=cfg.seed,
-                                      candidates=cfg.teacher_candidates, select_episodes=cfg.teacher_select_episodes,
+                                      candidates=teacher_candidates(cfg.task, cfg.teacher_candidates),
+                                      select_episodes=cfg.teacher_select_episodes,
                                       margin=cfg.teacher_select_margin, parallel=cfg.parallel)
         chain = f"{name}-c{kept}" if kept else name  # the stages after the teacher, named after the kept candidate
         policies["teacher"] = str(teacher)

@@ -42,6 +42,11 @@ estimates) closes about 1.5 cm farther out than its demonstrations; from 2 cm th
 CANDIDATE_SEED_STRIDE = 1000
 """Teacher candidate ``i`` of a run with seed ``s`` trains with seed ``s + CANDIDATE_SEED_STRIDE * i`` (candidate 0:
 the run's own seed), so the candidates of Table I's consecutive seeds never share one"""
+TEACHER_CANDIDATES = {"ClothFoldDiagonalPinned": 3, "ClothFoldDiagonalUnpinned": 3}
+"""Per task, the teacher stages run when a caller names no number (:func:`teacher_stage`'s ``candidates``; 1
+elsewhere): on the diagonal folds one draw of the stage often lands far below the others, and the train split finds
+the better ones; on ClothFold the draws are close and 30 selection episodes do not rank them (measured:
+docs/recipes/distill.md)"""
 STUDENT_ARGS = ""
 """recipes/distill.py: its own defaults (weight copy, distillation on the expert data, picker odometry, the per-task
 snapshot selection and expert-action term)"""
@@ -49,6 +54,11 @@ snapshot selection and expert-action term)"""
 
 def _flags(*, parallel: bool = False, mask_unseen_pickers: bool = False) -> list[str]:
     return (["--mask-unseen-pickers"] if mask_unseen_pickers else []) + (["--parallel"] if parallel else [])
+
+
+def teacher_candidates(task: str, requested: int | None = None) -> int:
+    """The teacher candidates of ``task``: ``requested``, or the task's default (``TEACHER_CANDIDATES``, else 1)."""
+    return TEACHER_CANDIDATES.get(task, 1) if requested is None else int(requested)
 
 
 def data_args(task: str) -> list[str]:

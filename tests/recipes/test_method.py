@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 from trakdis.method import (CANDIDATE_SEED_STRIDE, ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args,
-                            student_stage_args, teacher_stage, teacher_stage_args)
+                            student_stage_args, teacher_candidates, teacher_stage, teacher_stage_args)
 from trakdis.utils.config import parse_config
 
 from .conftest import load_recipe
@@ -168,3 +168,23 @@ def test_table1_names_the_stages_after_the_kept_teacher(tmp_path):
     assert encoder[encoder.index("--teacher") + 1] == str(tmp_path / "online_dt" / "t-ClothFold-s1-teacher-c1")
     assert students["trakdis"] == tmp_path / "distill" / "t-ClothFold-s1-c1-trakdis"
     assert evals["teacher"] == tmp_path / "evaluate" / "t-ClothFold-s1-c1-eval-teacher"
+
+
+def test_the_teacher_candidates_default_is_the_tasks(tmp_path):
+    """No --teacher-candidates: three on the diagonal folds, one on ClothFold (trakdis.method.TEACHER_CANDIDATES);
+    a number given is used on every task; --quick stays at one."""
+    assert [teacher_candidates(t) for t in ("ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned")] \
+        == [1, 3, 3]
+    assert teacher_candidates("ClothFoldDiagonalPinned", 1) == 1 and teacher_candidates("ClothFold", 2) == 2
+    bench = load_benchmark()
+    cfg = parse_config(bench.Table1Config, ["--noise-levels", "--methods", "teacher"])
+    for task, trained in (("ClothFold", 1), ("ClothFoldDiagonalUnpinned", 3)):
+        stages = FakeStages(tmp_path / task, [[0.5, 0.6], [0.1, 0.2], [0.7, 0.9]])
+        bench.run_task_seed(stages, cfg, "t", task, 0)
+        assert sum(recipe == "online_dt" for recipe, *_ in stages.calls) == trained
+    quick = parse_config(bench.Table1Config, ["--preset", "quick"], presets=bench.PRESETS)
+    assert quick.teacher_candidates == 1
+    pipeline = load_recipe("pipeline").PipelineConfig
+    assert parse_config(pipeline, []).teacher_candidates is None
+    with pytest.raises((ValueError, SystemExit)):  # the task's three need episodes to compare them
+        parse_config(pipeline, ["--teacher-select-episodes", "1"])
