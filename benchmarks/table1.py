@@ -60,8 +60,9 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference, read_final_scores, standard_error  # noqa: E402
-from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, encoder_stage_args,  # noqa: E402
-                            student_stage_args, teacher_candidates, teacher_stage, teacher_stage_args)
+from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, check_teacher_selection,  # noqa: E402
+                            encoder_stage_args, student_stage_args, teacher_candidates, teacher_stage,
+                            teacher_stage_args)
 from trakdis.utils.config import load_config, parse_config  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
@@ -144,12 +145,7 @@ class Table1Config(RunConfig):
     nothing of the run itself is written"""
 
     def __post_init__(self):
-        n = self.teacher_candidates  # None: the task's default, which may be more than one
-        if (n is not None and n < 1) or ((n is None or n > 1) and self.teacher_select_episodes < 2) \
-                or not self.teacher_select_margin >= 0:
-            raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
-                             f"{self.teacher_select_episodes}: >= 2 to compare candidates; --teacher-select-margin "
-                             f"{self.teacher_select_margin}: >= 0")
+        check_teacher_selection(self.teacher_candidates, self.teacher_select_episodes, self.teacher_select_margin)
         if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
             raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1; "
                              f"--noise-trials {self.noise_trials}: >= 0")

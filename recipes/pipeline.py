@@ -43,8 +43,8 @@ import pandas as pd
 
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import write_summary_table
-from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args, student_stage_args,
-                            teacher_candidates, teacher_stage, teacher_stage_args)
+from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, check_teacher_selection, encoder_stage_args,
+                            student_stage_args, teacher_candidates, teacher_stage, teacher_stage_args)
 from trakdis.policies import load_policy
 from trakdis.utils.config import parse_config
 from trakdis.utils.run import Run, RunConfig
@@ -87,12 +87,7 @@ class PipelineConfig(RunConfig):
     episodes, on 2 worker processes (--no-parallel: in turn; the same numbers)"""
 
     def __post_init__(self):  # checked while the command line is parsed, before any stage runs
-        n = self.teacher_candidates  # None: the task's default, which may be more than one
-        if (n is not None and n < 1) or ((n is None or n > 1) and self.teacher_select_episodes < 2) \
-                or not self.teacher_select_margin >= 0:
-            raise ValueError(f"--teacher-candidates {self.teacher_candidates}: >= 1; --teacher-select-episodes "
-                             f"{self.teacher_select_episodes}: >= 2 to compare candidates; --teacher-select-margin "
-                             f"{self.teacher_select_margin}: >= 0")
+        check_teacher_selection(self.teacher_candidates, self.teacher_select_episodes, self.teacher_select_margin)
 
 
 def main(argv=None) -> pd.DataFrame:

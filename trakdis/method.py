@@ -61,6 +61,15 @@ def teacher_candidates(task: str, requested: int | None = None) -> int:
     return TEACHER_CANDIDATES.get(task, 1) if requested is None else int(requested)
 
 
+def check_teacher_selection(candidates: int | None, select_episodes: int, margin: float = 0.0) -> None:
+    """Raise if the teacher candidates' options cannot run (``candidates`` ``None``: a task's default, which may be
+    more than one): the one check of ``teacher_stage`` and of the configurations that pass them on."""
+    compared = candidates is None or candidates > 1
+    if (candidates is not None and candidates < 1) or (compared and select_episodes < 2) or not margin >= 0:
+        raise ValueError(f"--teacher-candidates {candidates}: >= 1; --teacher-select-episodes {select_episodes}: >= 2 "
+                         f"to compare candidates; --teacher-select-margin {margin}: >= 0")
+
+
 def data_args(task: str) -> list[str]:
     """The expert data options every stage of ``task`` gets (``DATA_ARGS``), so that all read one dataset."""
     return shlex.split(DATA_ARGS.get(task, ""))
@@ -111,9 +120,7 @@ def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, 
     (docs/recipes/distill.md); the train split tells them apart. The choice and every candidate's scores are
     written to ``<pipeline run dir>/<run_name>-selection.json``. Returns the kept teacher's run directory and its
     index (callers name the stages that depend on it after it)."""
-    if candidates < 1 or (candidates > 1 and select_episodes < 2):
-        raise ValueError(f"teacher candidates {candidates} (>= 1) / selection episodes {select_episodes} (>= 2 "
-                         "to compare candidates)")
+    check_teacher_selection(candidates, select_episodes, margin)
     names = [run_name] + [f"{run_name}-c{i}" for i in range(1, candidates)]
     teachers = [stages.run("online_dt", n, "policy.pt", args, seed=seed + CANDIDATE_SEED_STRIDE * i)
                 for i, n in enumerate(names)]
