@@ -11,8 +11,8 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
 
 * the teacher (``online_dt.py``, ``--teacher-args``), the encoder (``train_encoder.py``,
   ``--encoder-args``) and the student (``distill.py``, ``--student-args``): the full method, TraKDis;
-* the ablations: No-Aug (the student on an encoder trained with ``--no-aug``: no random shift, no
-  flip; the default encoder shifts no more since stop 32, so No-Aug now removes the flip alone), No-Pretrain (``distill.py --no-weight-copy``), No-Distill (``distill.py --no-distill``);
+* the ablations: No-Aug (the student on an encoder trained with ``--no-aug``: no flip, so no test-time
+  flip either; the default encoder does not shift), No-Pretrain (``distill.py --no-weight-copy``), No-Distill (``distill.py --no-distill``);
 * the baselines: BC-image (``bc_image.py``, ``--bc-args``) and DT-image (``dt_image.py``,
   ``--dt-image-args``);
 * ``evaluate.py`` for each of them and for the scripted expert: ``--trials`` eval-split episodes,
@@ -161,10 +161,10 @@ class Table1Config(RunConfig):
 
 # --quick: one seed, 20 trials, short encoder/student/baseline training (the encoder: one member, 5 epochs and one
 # round of 10 weight-copy episodes, no noisy expert's dataset), no robustness study. The teacher keeps its 1500
-# offline updates: with 500 it scored 0.000 on all 20 trials (it never grasped; docs/history.md). Every student arm
-# keeps its last round and its curve has two points (the copy, the last round): at stop 40 a 10-episode snapshot
-# selection, not the arms' training, decided their order, and its and the curves' episodes took a third of the run.
-# The method's 10 x 50 updates instead of 4 x 25 cost 6 more minutes and did not order ClothFold's arms (stop 41).
+# offline updates: with 500 it never grasped. Every student arm keeps its last round and its curve has two points
+# (the copy, the last round): a 10-episode snapshot selection would decide the arms' order rather than their
+# training, and would cost a third of the run. The method's 10 x 50 updates would cost 6 more minutes and do not
+# order ClothFold's arms at 20 trials either (docs/table1.md).
 PRESETS = {"quick": {
     "seeds": 1,
     "trials": 20,

@@ -96,12 +96,13 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
         return self.distill and self.expert_data and self.episodes_per_round == 0
 
 
-# --select-episodes by task: on ClothFold the 10 rounds ended above the weight copy on every seed measured (3 of 3
-# with the stop-35 encoders) and the 30-episode selection kept the copy; on the diagonal folds distillation lowered it.
+# --select-episodes by task: on ClothFold the 10 rounds end above the weight copy, yet a 30-episode selection kept
+# the copy; on the diagonal folds distillation can lower it, so the train split picks the snapshot
+# (docs/recipes/distill.md).
 SELECT_EPISODES = {"ClothFold": 0, "ClothFoldDiagonalPinned": 30, "ClothFoldDiagonalUnpinned": 30}
-# --expert-coef by task (stop 42): on ClothFold the teacher labels the demonstrations' grasp onsets "open" 61-73% of
-# the time, and the expert's actions beside its labels raised the student on 3 of 3 seeds (+0.047 +- 0.014);
-# on the pinned diagonal fold they lowered its rounds below the copy (seed 1's kept round: -0.204 +- 0.037).
+# --expert-coef by task: on ClothFold the teacher labels most of the demonstrations' grasp onsets "open", and the
+# expert's actions beside its labels raise the student; on the pinned diagonal fold they lower it below the copy
+# (docs/recipes/distill.md).
 EXPERT_COEF = {"ClothFold": 1.0, "ClothFoldDiagonalPinned": 0.0, "ClothFoldDiagonalUnpinned": 0.0}
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,

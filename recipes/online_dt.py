@@ -93,8 +93,9 @@ PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule 
     "batch_size": 256, "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
     "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
     "eval_rtg": -1.0, "eval_episodes": 100, "expert_episodes": 100, "eval_every": 50},
-    # issue 12's teacher on this 2-core CPU: 5x the method teacher's 40 demonstrations, about as many passes over
-    # them (19 against 24), DAgger online, early stopping between the offline and the final teacher
+    # the strongest teacher measured on a 2-core CPU (docs/recipes/online_dt.md): 5x the method teacher's 40
+    # demonstrations, about as many passes over them (19 against 24), DAgger online, early stopping between the
+    # offline and the final teacher
     "cpu": {"data": {"episodes": 200}, "model": {"log_std_min": DTConfig.log_std_min}, "offline_updates": 6000,
             "online_labels": "expert", "eval_episodes": 100, "select_episodes": 30, "select_every": 8}}
 

@@ -380,7 +380,7 @@ def test_expert_versions_are_per_task(tmp_path):
     kept = default_dataset_path(cfg, task=pinned, horizon=100, pixels=True)
     _fake_dataset(kept, 2, task=pinned, render=render_version(pinned))
     assert ensure_dataset(cfg, task=pinned, horizon=100, seed=0, pixels=True) == kept
-    for task in ("ClothFoldDiagonalUnpinned", "ClothFold"):  # version 3 since stops 38 and 50
+    for task in ("ClothFoldDiagonalUnpinned", "ClothFold"):  # their experts are version 3
         old = default_dataset_path(cfg, task=task, horizon=100, pixels=True)
         _fake_dataset(old, 2, task=task, render=render_version(task))
         with pytest.raises(DatasetError, match=rf"{old.name}.*version 2 of the {task} scripted expert.*version "

@@ -42,8 +42,7 @@ class DataConfig:
     """episodes to collect when the dataset does not exist (the paper: 8000)"""
     expert_noise: float = 0.15
     """std of the Gaussian noise on the collecting expert's picker movements: diverse, sub-optimal data
-    that online fine-tuning can improve on (measured on ClothFold, 40 train episodes: 0.1 -> 0.838,
-    0.15 -> 0.762 normalized performance; noise-free expert 0.826 on the eval split)"""
+    that online fine-tuning can improve on (see docs/recipes/collect.md)"""
     aim_error: float = 0.0
     """std (metres) of a horizontal misplacement of each source corner in the state the collecting expert
     reads, drawn per episode and held (ExpertPolicy's aim_error: grasps that miss, as a student's biased

@@ -14,7 +14,7 @@ CAMERA_XYAXES = (1.0, 0.0, 0.0, 0.0, 1.0, 1.0)  # MJCF xyaxes: the camera's x an
 # Vertical field of view (degrees) per task. The unpinned diagonal fold's source corner can start
 # 2-3 pixels from the 32x32 frame's left edge, where an image-only student lost its picker: its
 # camera sees wider. The pinned fold's students do not fail there, and ClothFold's distilled
-# student lost with the wider view (measured: docs/recipes/distill.md, stop 40).
+# student lost with the wider view (measured: docs/recipes/distill.md).
 CAMERA_FOVY = {"ClothFold": 45.0, "ClothFoldDiagonalPinned": 45.0, "ClothFoldDiagonalUnpinned": 55.0}
 
 TABLE_RGBA = "0.55 0.47 0.38 1"

@@ -145,7 +145,7 @@ class DTConfig:
 
 # Tasks whose DTs the recipes train with the grasp commands left out of the action tokens (measured,
 # docs/recipes/online_dt.md: on ClothFold the teacher copied its previous grasp token and missed the first
-# close in 86-94% of its demonstrations; on the diagonal folds it did not, and hiding it lowered the student)
+# close in most of its demonstrations; on the diagonal folds it did not, and hiding it lowered the student)
 HIDDEN_GRASP_TASKS = ("ClothFold",)
 
 

@@ -282,7 +282,7 @@ def attention(q, k, v, attn_mask: torch.Tensor | None, dropout_p: float) -> torc
     With attention dropout on a CPU, SDPA falls back to its math kernel with PyTorch's slow
     dropout (measured ~2x slower fwd+bwd than without dropout); there the same math is computed
     by :func:`chunked_attention` with the cheaper dropout of :func:`fast_dropout`, skipping the
-    causal upper triangle chunk by chunk. Measured against SDPA + ``nn.Dropout`` (issue 13, one
+    causal upper triangle chunk by chunk. Measured against SDPA + ``nn.Dropout`` (one
     thread, training steps of batch 64 interleaved in one process, best of 4-12 rounds): 1.40x
     faster at ``--preset paper`` size (context 30), 1.22x at the ``DTConfig`` defaults, 1.12x for
     the recipes' small model with ``--dropout 0.1``; with dropout 0 (the recipes' default) neither
