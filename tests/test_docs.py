@@ -10,6 +10,7 @@ DOCS = sorted([ROOT / "README.md", ROOT / "CHANGELOG.md", *(ROOT / "docs").rglob
 DOCS = [path for path in DOCS if path.exists()]
 
 LINK = re.compile(r"!?\[(?:[^\]\[]|\[[^\]]*\])*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+REFERENCE = re.compile(r"^ {0,3}\[[^\]]+\]:\s+(\S+)", re.M)  # a reference-style definition: [id]: path
 CODE_SPAN = re.compile(r"`([^`\n]+)`")
 # a path into the repository as docs cite it in code spans: `trakdis/envs/cloth_env.py`, `docs/tasks.md`, `tests/`
 REPO_PATH = re.compile(r"^(?:\./)?((?:trakdis|recipes|benchmarks|tests|docs)/[\w./-]*)$")
@@ -48,7 +49,8 @@ def anchors(path: Path) -> set[str]:
 
 
 def links(path: Path) -> list[str]:
-    return [target for target in LINK.findall(prose(path.read_text()))
+    text = prose(path.read_text())
+    return [target for target in LINK.findall(text) + REFERENCE.findall(text)
             if not re.match(r"^[a-z]+:", target)]  # https:, mailto: ... are not checked here
 
 
@@ -89,8 +91,9 @@ def test_slug_matches_github():
 def test_checker_finds_a_broken_link(tmp_path):
     doc = tmp_path / "a.md"
     (tmp_path / "b.md").write_text("# Real heading\n")
-    doc.write_text("[ok](b.md#real-heading) [bad](b.md#nowhere) [gone](c.md)\n```\n[not a link](d.md)\n```\n")
-    assert links(doc) == ["b.md#real-heading", "b.md#nowhere", "c.md"]
+    doc.write_text("[ok](b.md#real-heading) [bad](b.md#nowhere) [gone](c.md)\n```\n[not a link](d.md)\n```\n"
+                   "![img][ref]\n\n[ref]: e.png\n")
+    assert links(doc) == ["b.md#real-heading", "b.md#nowhere", "c.md", "e.png"]
     assert anchors(tmp_path / "b.md") == {"real-heading"}
 
 
