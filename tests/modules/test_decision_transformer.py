@@ -193,7 +193,7 @@ def test_gradients_reach_all_actor_parameters():
 
 
 def test_training_mode_with_dropout_keeps_causality_and_padding_invariance():
-    # same seed -> same dropout masks; the chunked CPU attention path must still be causal and
+    # same seed -> same dropout masks; attention with dropout must still be causal and
     # blind to padded content (the eval-mode tests above go through SDPA)
     torch.manual_seed(0)
     dt = DTBackbone(small_config(context_len=40, dropout=0.2, attn_dropout=0.3)).train()

@@ -21,7 +21,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
-from trakdis.modules.transformer import CausalTransformer, Dropout, KVCache, TransformerConfig
+from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 
 __all__ = ["DTConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor", "recipe_hidden_action_dims"]
 
@@ -183,7 +183,7 @@ class DTBackbone(nn.Module):
         self.embed_action = nn.Linear(config.action_dim, d)
         self.embed_timestep = nn.Embedding(config.max_timestep, d)
         self.embed_ln = nn.LayerNorm(d)
-        self.embed_drop = Dropout(config.dropout)
+        self.embed_drop = nn.Dropout(config.dropout)
         self.transformer = CausalTransformer(config.transformer_config())
         for lin in (self.embed_return, self.embed_state, self.embed_action):
             nn.init.normal_(lin.weight, std=0.02)
