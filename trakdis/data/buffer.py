@@ -14,7 +14,8 @@ Semantics (ODT, Zheng et al. 2022, and its reference code):
   (i.e. a trajectory with probability proportional to its length, then a uniform start in it), the
   window covers up to ``K`` steps from there and is left-padded to ``K`` with ``mask`` False and
   zero values; ``return_to_go`` is relabelled from the stored rewards at sampling time
-  (hindsight, times ``rtg_scale``); ``timestep`` is the step index in the episode. With
+  (hindsight, times ``rtg_scale``; ``relabel_return_to_go=False`` stores and returns the acting
+  one instead); ``timestep`` is the step index in the episode. With
   ``early_windows=True`` (used by the recipes) windows may also begin up to ``K - 1`` steps before
   the first step, so that the first steps of an episode are trained as often as the others.
 
@@ -425,8 +426,9 @@ class TrajectoryReplayBuffer:
         return self.sampler.total_steps
 
     def sample(self, batch_size: int) -> TensorDict:
-        """Windows ``[B, K]``: the stored keys, ``"return_to_go"`` ``[B, K, 1]`` (hindsight, scaled),
-        ``"timestep"`` ``[B, K]`` int64, ``"mask"`` ``[B, K]`` bool; padded positions are zero."""
+        """Windows ``[B, K]``: the stored keys, ``"return_to_go"`` ``[B, K, 1]`` (hindsight, scaled;
+        the stored one with ``relabel_return_to_go=False``), ``"timestep"`` ``[B, K]`` int64,
+        ``"mask"`` ``[B, K]`` bool; padded positions are zero."""
         data, info = self._rb.sample(batch_size, return_info=True)
         mask = info["mask"]
         traj = info["trajectory"]

@@ -2,9 +2,11 @@
 
 ``runs/<recipe>/<name>/`` holds ``config.json``, ``log.csv``, ``curves.png`` and
 ``checkpoint.pt``. TorchRL's ``torchrl.record.loggers.CSVLogger`` writes one file per scalar
-(``scalars/<name>.csv``) and has no notion of resuming, so this module keeps one wide table
-instead: one row per logged step, one stable column per metric (``train/loss_nll``,
-``eval/normalized_performance``), written with pandas and appended to on resume.
+(``scalars/<name>.csv``); its ``state_dict`` restores its scalar history and step counters on resume,
+but its files keep (and then repeat) the rows a killed run wrote after its last checkpoint. This
+module keeps one wide table instead: one row per logged step, one stable column per metric
+(``train/loss_nll``, ``eval/normalized_performance``), rewritten atomically with pandas and, on
+resume, cut back to the checkpoint's step (``truncate_after``).
 :class:`WideCSVLogger` is a ``torchrl.record.loggers.Logger``, so TorchRL-style code
 (``log_scalar``, ``log_metrics``) writes into the same table; :func:`make_torchrl_logger` opens
 TorchRL's TensorBoard or W&B logger in a run directory, for runs that log to one of them as well.
