@@ -22,6 +22,7 @@ import torch
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories
 from trakdis.envs.specs import TaskName
 from trakdis.utils.config import parse_config
+from trakdis.utils.limits import MAX_HORIZON, check_option, check_options
 from trakdis.utils.phases import available_workers
 
 
@@ -56,6 +57,11 @@ class CollectConfig:
     """torch CPU threads"""
     progress: bool = True
     """show a progress bar"""
+
+    def __post_init__(self):  # while parsing (tyro), before anything is written
+        check_options(self, sizes=("horizon", "episodes", "num_envs", "image_size"), counts=("threads", "seed"),
+                      nonnegative=("expert_noise",), positive=("close_radius",))
+        check_option("horizon", self.horizon, le=MAX_HORIZON, integer=True)
 
 
 def main(argv=None):

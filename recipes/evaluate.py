@@ -24,6 +24,7 @@ from trakdis.envs import close_env, task_spec
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import episode_frames, grasp_report, run_episodes, summarize, summarize_grasps, write_summary_table
 from trakdis.policies import load_policy
+from trakdis.utils.limits import MAX_HORIZON, MAX_PARAMS, cap_workers, check_option, check_options
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.video import write_video
 
@@ -58,6 +59,9 @@ class EvaluateConfig(RunConfig):
     """side of the large render in the videos"""
     fps: float = 10.0
     """video frame rate"""
+    max_params: int = MAX_PARAMS
+    """refuse a policy file whose models have more parameters than this (trakdis.utils.limits; raise it for a
+    larger policy you trust)"""
 
     def __post_init__(self):
         # checked while the command line is parsed, before the run directory exists
@@ -69,19 +73,26 @@ class EvaluateConfig(RunConfig):
                              f"(got {list(self.state_noise)})")
         if self.horizon is not None and self.horizon < 1:
             raise ValueError(f"--horizon {self.horizon}: the episode length must be >= 1 (none: the policy's own)")
+        check_options(self, sizes=("trials", "num_envs", "video_size", "max_params"), counts=("videos",),
+                      positive=("fps",), nonnegative=("expert_noise",))
+        if self.horizon is not None:
+            check_option("horizon", self.horizon, le=MAX_HORIZON, integer=True)
+        super().__post_init__()
 
 
 def main(argv=None) -> pd.DataFrame:
     run = Run.start("evaluate", EvaluateConfig, argv, description=__doc__)
     cfg = run.cfg
-    handle = load_policy(cfg.policy, task=cfg.task, horizon=cfg.horizon, expert_noise=cfg.expert_noise, device=cfg.device)
+    handle = load_policy(cfg.policy, task=cfg.task, horizon=cfg.horizon, expert_noise=cfg.expert_noise, device=cfg.device,
+                         max_params=cfg.max_params)
+    num_envs = cap_workers(cfg.num_envs, cfg.trials, unit="trials", warn=run.print)  # no env without an episode
     spec = task_spec(handle.task, horizon=handle.horizon)
     name = handle.kind if handle.kind == "expert" else f"{handle.kind} ({handle.source})"
     run.print(f"evaluating {name} on {handle.task} ({cfg.split} split), {cfg.trials} trials x "
               f"state noise {list(cfg.state_noise)}")
     rows, summaries = [], []
     for i, sigma in enumerate(cfg.state_noise):
-        env = handle.make_env(num_envs=cfg.num_envs, split=cfg.split, state_noise=sigma, noise_seed=cfg.seed + 7919,
+        env = handle.make_env(num_envs=num_envs, split=cfg.split, state_noise=sigma, noise_seed=cfg.seed + 7919,
                               parallel=cfg.parallel, target_return=cfg.target_return)
         grasps, errors = [], []  # where each episode's pickers first closed (trakdis.evaluation.grasps)
 

@@ -27,6 +27,7 @@ from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle
 from trakdis.training import SnapshotSelection, online_rollouts, train_rounds, train_updates
 from trakdis.transforms import OutOfViewFill
+from trakdis.utils.limits import MAX_HORIZON, check_option, check_options
 from trakdis.utils.run import Run, RunConfig, RunState
 
 MAIN_JOB_EPISODES = 20
@@ -85,6 +86,15 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
         for name, low in (("horizon", 1), ("expert_episodes", 0)):
             if getattr(self, name) < low:
                 raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= {low}")
+        check_options(self, sizes=("horizon", "batch_size", "log_every", "checkpoint_every", "select_every",
+                                   "buffer_capacity"),
+                      counts=("offline_updates", "online_rounds", "episodes_per_round", "updates_per_round",
+                              "select_episodes"),
+                      positive=("rtg_scale", "state_scale_floor", "online_lr"),
+                      nonnegative=("lambda_entropy", "state_noise", "select_margin"))
+        check_option("min_lr_fraction", self.min_lr_fraction, gt=0, le=1)
+        check_option("horizon", self.horizon, le=MAX_HORIZON, integer=True)
+        super().__post_init__()
 
 
 PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule (Online DT's executed labels)

@@ -47,6 +47,7 @@ from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, check_teac
                             student_stage_args, teacher_candidates, teacher_stage, teacher_stage_args)
 from trakdis.policies import load_policy
 from trakdis.utils.config import parse_config
+from trakdis.utils.limits import check_options
 from trakdis.utils.run import Run, RunConfig
 from trakdis.utils.stages import Stages
 
@@ -88,6 +89,30 @@ class PipelineConfig(RunConfig):
 
     def __post_init__(self):  # checked while the command line is parsed, before any stage runs
         check_teacher_selection(self.teacher_candidates, self.teacher_select_episodes, self.teacher_select_margin)
+        check_options(self, sizes=("trials",))
+        super().__post_init__()
+
+
+def check_stage_args(stages: Stages, cfg: PipelineConfig) -> None:
+    """Parse the encoder and student stages' arguments (``--encoder-args``, ``--student-args``) with their
+    recipes' configurations, before any stage runs: a bad option ends the pipeline at once, naming the flag
+    that carried it, instead of after the teacher's training. The stage's error itself is printed above."""
+    placeholder = stages.pipeline.dir / "not-yet-trained"  # stands for the files the earlier stages will write
+    for flag, recipe, config, args, presets in (
+            ("--encoder-args", "train_encoder", "TrainEncoderConfig",
+             encoder_stage_args(cfg.task, placeholder, cfg.encoder_args, parallel=cfg.parallel,
+                                mask_unseen_pickers=cfg.mask_unseen_pickers), None),
+            ("--student-args", "distill", "DistillConfig",
+             student_stage_args(cfg.task, placeholder, placeholder, cfg.student_args, parallel=cfg.parallel),
+             "PRESETS")):
+        module = stages.recipe(recipe)
+        try:
+            parse_config(getattr(module, config), args, presets=getattr(module, presets) if presets else None)
+        except SystemExit as err:
+            if err.code in (0, None):  # --help inside the arguments
+                raise
+            raise SystemExit(f"pipeline.py {flag}={getattr(cfg, flag[2:].replace('-', '_'))!r}: recipes/{recipe}.py "
+                             f"refuses these options (its error is above); nothing was run") from None
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -99,6 +124,7 @@ def main(argv=None) -> pd.DataFrame:
     teacher_args = teacher_stage_args(cfg.task, cfg.teacher_args, mask_unseen_pickers=mask)
     online_dt = stages.recipe("online_dt")  # the expert plays episodes of the teacher's length
     horizon = parse_config(online_dt.OnlineDTConfig, teacher_args, presets=online_dt.PRESETS).horizon
+    check_stage_args(stages, cfg)  # the later stages' options now, not after the teacher's training
     evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
     directories, policies = {}, {"expert": "expert"}
     background = ("expert", "teacher") if cfg.background_evaluations else ()

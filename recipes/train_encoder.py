@@ -25,6 +25,7 @@ from trakdis.policies import (check_unseen_picker_mask, load_teacher, save_encod
                               weight_copy_race)
 from trakdis.transforms import OutOfViewFill
 from trakdis.training import eval_batches, train_epoch
+from trakdis.utils.limits import MAX_MEMBERS, MAX_PARAMS, check_option, check_options
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -80,10 +81,17 @@ class TrainEncoderConfig(RunConfig):
     """label each picker out of the camera view with a fixed sentinel xyz (for a teacher trained so)"""
     parallel: bool = False
     """play the student rounds' and --select-episodes' episodes on 2 worker processes (ParallelEnv; the same episodes)"""
+    max_params: int = MAX_PARAMS
+    """refuse a --teacher file whose model has more parameters than this (trakdis.utils.limits)"""
 
     def __post_init__(self):  # checked while parsing, before the run directory exists
         if self.members < 1:
             raise ValueError(f"--members {self.members}: need at least 1 encoder")
+        check_options(self, sizes=("batch_size", "hidden_dim", "max_params"), positive=("lr",),
+                      nonnegative=("weight_decay",), counts=("epochs", "student_rounds", "student_episodes",
+                                                             "student_epochs", "pad"))
+        check_option("members", self.members, le=MAX_MEMBERS, integer=True)
+        super().__post_init__()
         if self.select_chunk < 0:
             raise ValueError(f"--select-chunk {self.select_chunk}: must be >= 0 (0: no racing)")
         if self.select_episodes < 0 or self.select_episodes and (self.members < 2 or not self.teacher):
@@ -144,7 +152,7 @@ def main(argv=None) -> dict:
                            "rounds_done": 0, "student_steps": None, "member_scores": {}},
                      step_key="epoch", counters_key=None, encoder=encoder, optim=optim, **schedule)
     state.load()
-    teacher = load_teacher(cfg.teacher, task=cfg.task, horizon=cfg.horizon) if with_rounds or cfg.select_episodes else None
+    teacher = load_teacher(cfg.teacher, task=cfg.task, horizon=cfg.horizon, max_params=cfg.max_params) if with_rounds or cfg.select_episodes else None
     state.restore_rng()  # after the teacher's modules are built (their init draws), so the RNG streams continue exactly
     mask_meta = {"mask_unseen_pickers": fill is not None, "out_of_view_fill": None if fill is None else fill.state_dict()}
     if teacher is not None:  # the student rounds' student acts with the teacher's (masked or not) states

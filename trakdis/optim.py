@@ -127,6 +127,9 @@ class Updater:
         self.params = [p for p in (params if params is not None else loss_module.parameters()) if p.requires_grad]
         if not self.params:
             raise ValueError(f"Updater: {type(loss_module).__name__} has no trainable parameters")
+        if grad_clip is not None and not (math.isfinite(grad_clip) and grad_clip > 0):
+            # clip_grad_norm_ scales by max_norm / norm: a negative bound reverses the gradient
+            raise ValueError(f"Updater: grad_clip must be > 0 (None: no clipping), got {grad_clip!r}")
         self.optimizer = make_optimizer(optimizer, self.params, lr=lr, weight_decay=weight_decay)
         self.scheduler = make_warmup_scheduler(self.optimizer, warmup_steps, decay_steps, min_lr_fraction)
         self.grad_clip = grad_clip
@@ -187,6 +190,17 @@ class OptimConfig:
     """linear learning-rate warm-up (updates)"""
     grad_clip: float = 0.25
     """gradient-norm clip (0: off)"""
+
+    def __post_init__(self):  # while parsing (tyro), before the run directory exists
+        from trakdis.utils.limits import check_option
+
+        check_option("lr", self.lr, gt=0)
+        check_option("weight_decay", self.weight_decay, ge=0)
+        check_option("warmup_steps", self.warmup_steps, ge=0, integer=True)
+        check_option("grad_clip", self.grad_clip, ge=0)  # a negative bound would reverse the gradient
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
 
     def make_updater(self, loss_module: torch.nn.Module, **kwargs: Any) -> "Updater":
         """An :class:`Updater` of ``loss_module`` with these options (``kwargs``: the other arguments)."""

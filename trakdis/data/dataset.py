@@ -15,10 +15,13 @@ since each chunk's env and policy seeds derive from ``(seed, chunk index)`` only
 an uninterrupted collection. One collection at a time writes into ``<path>.partial/`` (an exclusive
 ``fcntl.flock`` on the directory); a second one is refused.
 
-:func:`load_expert_dataset` reads any dataset as untrusted input: ``meta.json`` is validated, every data
-file's size must equal what its ``meta.json`` shape and dtype give, and the files are mapped
-read-only (copy-on-write: the file is opened read-only, in-memory writes never reach the disk, and
-no pickle is ever read). Only collection (writing its own ``.partial`` directory) opens them for writing.
+:func:`load_expert_dataset` reads any dataset as untrusted input: ``meta.json`` (a regular file of at
+most :data:`~trakdis.utils.limits.MAX_JSON_BYTES`) is validated, every file must be a regular file
+inside the dataset directory (symlinks resolved), every data file's size must equal what its
+``meta.json`` shape and dtype give, the episode lengths must lie in ``[1, horizon]``, and the files are
+mapped read-only (copy-on-write: the file is opened read-only, in-memory writes never reach the disk,
+and no pickle is ever read). Only collection (writing its own ``.partial`` directory) opens them for
+writing; it checks the disk's free space before it maps a file that it will fill.
 """
 
 from __future__ import annotations
@@ -39,7 +42,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from trakdis.utils.checkpoint import atomic_write_bytes
+from trakdis.utils import limits
+from trakdis.utils.checkpoint import atomic_write_bytes, remove_stale_temporaries
 
 from .layout import REQUIRED_KEYS, STEP_KEYS, valid_mask
 
@@ -277,10 +281,13 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
 
     progress_file = tmp / "progress.json"
     chunks_done = 0
+    remove_stale_temporaries(tmp)  # of a collection killed while it replaced progress.json or meta.json
     if progress_file.exists():
         try:
-            state = json.loads(progress_file.read_text())
-        except (OSError, ValueError) as err:
+            state = limits.read_json(progress_file, within=tmp, error=DatasetError, what="progress file")
+            if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
+                raise DatasetError(f"{progress_file} is not a progress record")
+        except DatasetError as err:
             raise DatasetError(
                 f"collect_expert_dataset: cannot resume from {tmp}: unreadable {progress_file.name} ({err}); "
                 f"delete {tmp} to start over"
@@ -310,6 +317,7 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
     data = None
     if chunks_done > 0:
         data = TensorDict.load_memmap(tmp / "data", allow_pickle=False)  # the writer's own files, read-write
+        _check_free_space(tmp / "data", _unallocated_bytes(tmp / "data"))
     # TorchRL 0.14 changes torch's intra-op thread count when it starts and shuts down a
     # ParallelEnv (it lowers it by the number of workers, then raises it again, up to the initial
     # default of all cores). Measured: a recipe that set 1 thread and collected its dataset first
@@ -347,6 +355,7 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
                         {"steps": episodes[:1].expand(num_episodes, horizon), "length": torch.zeros(num_episodes, dtype=torch.long)},
                         [num_episodes],
                     )
+                    _check_free_space(tmp, _template_bytes(template))
                     data = template.memmap_like(prefix=tmp / "data")
                 data["steps"][lo : lo + n] = episodes[:n]
                 data["length"][lo : lo + n] = lengths[:n]
@@ -403,6 +412,31 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
     return path
 
 
+def _template_bytes(template: TensorDictBase) -> int:
+    return sum(v.numel() * v.element_size() for v in template.values(True, True))
+
+
+def _unallocated_bytes(directory: Path) -> int:
+    """Bytes the memory-mapped files under ``directory`` still need on disk (sparse files: their size
+    minus the blocks already allocated)."""
+    total = 0
+    for file in directory.rglob("*.memmap"):
+        st = file.stat()
+        total += max(0, st.st_size - 512 * getattr(st, "st_blocks", st.st_size // 512))
+    return total
+
+
+def _check_free_space(directory: Path, needed: int) -> None:
+    """A :class:`DatasetError` naming the disk when less than ``needed`` bytes (plus 1%) are free there:
+    a memory-mapped write to a full disk kills the process with SIGBUS, without a message."""
+    free = shutil.disk_usage(directory).free
+    if needed * 1.01 > free:
+        raise DatasetError(
+            f"collect_expert_dataset: the dataset needs {needed / 2**20:,.1f} MiB more on the disk of {directory}, "
+            f"which has {free / 2**20:,.1f} MiB free; free some space (the collection resumes where it stopped) "
+            f"or collect to another disk")
+
+
 _DTYPES = {name: getattr(torch, name) for name in (
     "float16", "bfloat16", "float32", "float64", "uint8", "int8", "int16", "int32", "int64", "bool")}
 _KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -410,6 +444,56 @@ _KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 def _meta_error(meta_file: Path, key: str, problem: str) -> DatasetError:
     return DatasetError(f"load_expert_dataset: {meta_file}: {key!r} {problem}")
+
+
+# the layout of the per-step keys whose form does not depend on the task: dtype names and shape (None: any)
+_FIXED_LAYOUT = {
+    "reward": (("float32", "float64"), [1]), "normalized_performance": (("float32", "float64"), [1]),
+    "done": (("bool",), [1]), "terminated": (("bool",), [1]), "truncated": (("bool",), [1]),
+    "sim_unstable": (("bool",), [1]), "step_count": (("int64",), [1]),
+    "state": (("float32", "float64"), None), "action": (("float32", "float64"), None), "pixels": (("uint8",), None),
+}
+
+
+def _task_names() -> tuple[str, ...]:
+    from trakdis.envs.specs import TASKS
+
+    return tuple(TASKS)
+
+
+def _check_layout(meta: dict, meta_file: Path) -> None:
+    """Each known per-step key of the dtype and shape a collection writes (a ``meta.json`` whose shapes
+    lie consistently with its files' sizes is refused here); for a task of ``trakdis.envs.TASKS``, the
+    state and action widths of that task, and images of the collection's ``image_size`` (unless the
+    collection used an env of its own)."""
+    keys = meta["keys"]
+    for name, (dtypes, shape) in _FIXED_LAYOUT.items():
+        if name not in keys:
+            continue
+        spec = keys[name]
+        if spec["dtype"] not in dtypes:
+            raise _meta_error(meta_file, f"keys.{name}.dtype", f"must be {' or '.join(dtypes)}, got {spec['dtype']!r}")
+        if shape is not None and spec["shape"] != shape:
+            raise _meta_error(meta_file, f"keys.{name}.shape", f"must be {shape}, got {spec['shape']!r}")
+    for name in ("state", "action"):
+        if name in keys and len(keys[name]["shape"]) != 1:
+            raise _meta_error(meta_file, f"keys.{name}.shape", f"must be [width], got {keys[name]['shape']!r}")
+    config = meta.get("config", {})
+    ours = meta["task"] in _task_names() and not config.get("custom_env")  # a trakdis task's env: its widths known
+    size = config.get("image_size") if ours else None
+    if "pixels" in keys:
+        shape = keys["pixels"]["shape"]
+        if len(shape) != 3 or shape[2] != 3 or shape[0] != shape[1] or (limits.is_int(size) and shape[0] != size):
+            raise _meta_error(meta_file, "keys.pixels.shape", f"must be [size, size, 3] images"
+                              f"{f' of the image_size {size} it records' if limits.is_int(size) else ''}, got {shape!r}")
+    if ours:
+        from trakdis.envs.specs import task_spec
+
+        spec = task_spec(meta["task"])
+        for name, width in (("state", spec.state_dim), ("action", spec.action_dim)):
+            if name in keys and keys[name]["shape"] != [width]:
+                raise _meta_error(meta_file, f"keys.{name}.shape", f"must be [{width}] for task {meta['task']}, "
+                                  f"got {keys[name]['shape']!r}")
 
 
 def collected_expert_version(meta: dict) -> int | None:
@@ -430,12 +514,9 @@ def read_meta(path: str | os.PathLike) -> dict:
     well-formed. Raises :class:`DatasetError` naming the file and the offending key."""
     path = Path(path)
     meta_file = path / "meta.json"
-    if not meta_file.exists():
+    if not os.path.lexists(meta_file):
         raise DatasetError(f"load_expert_dataset: {path} has no meta.json: not a trakdis dataset, or an unfinished one")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except (ValueError, OSError) as err:
-        raise DatasetError(f"load_expert_dataset: {meta_file} is not valid JSON ({err})") from err
+    meta = limits.read_json(meta_file, within=path, error=DatasetError, what="load_expert_dataset: dataset file")
     if not isinstance(meta, dict):
         raise DatasetError(f"load_expert_dataset: {meta_file} holds a JSON {type(meta).__name__}, expected an object "
                            f"with 'format', 'version', 'task', 'num_episodes', 'horizon' and 'keys'")
@@ -453,8 +534,11 @@ def read_meta(path: str | os.PathLike) -> dict:
         raise _meta_error(meta_file, "task", f"must be a task name, got {meta['task']!r}")
     for key in ("num_episodes", "horizon"):
         value = meta[key]
-        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+        if not (limits.is_int(value) and value >= 1):
             raise _meta_error(meta_file, key, f"must be an int >= 1, got {value!r}")
+    if meta["horizon"] > limits.MAX_HORIZON:
+        raise _meta_error(meta_file, "horizon", f"must be at most {limits.MAX_HORIZON} "
+                          f"(trakdis.utils.limits.MAX_HORIZON), got {meta['horizon']!r}")
     keys = meta["keys"]
     if not isinstance(keys, dict):
         raise _meta_error(meta_file, "keys", f"must map each per-step key to its shape and dtype, got {keys!r}")
@@ -471,17 +555,19 @@ def read_meta(path: str | os.PathLike) -> dict:
             raise _meta_error(meta_file, where + ".dtype", f"must be one of {sorted(_DTYPES)}, got {spec['dtype']!r}")
     if "config" in meta and not isinstance(meta["config"], dict):
         raise _meta_error(meta_file, "config", f"must be an object, got {meta['config']!r}")
+    _check_layout(meta, meta_file)
     return meta
 
 
-def _open_readonly(file: Path, dtype: torch.dtype, shape: tuple[int, ...], what: str) -> torch.Tensor:
+def _open_readonly(file: Path, dtype: torch.dtype, shape: tuple[int, ...], what: str, root: Path) -> torch.Tensor:
     """Map ``file`` as a ``dtype`` tensor of ``shape``, read-only on disk (opened ``O_RDONLY``, mapped
-    private: writes to the tensor stay in memory), after checking that its size is exactly what
-    ``shape`` and ``dtype`` need."""
+    private: writes to the tensor stay in memory), after checking that it is a regular file inside
+    ``root`` (symlinks resolved) whose size is exactly what ``shape`` and ``dtype`` need."""
     numel = math.prod(shape)
     expected = numel * torch.empty((), dtype=dtype).element_size()
-    if not file.is_file():
+    if not os.path.lexists(file):
         raise DatasetError(f"load_expert_dataset: {file} ({what}) is missing")
+    limits.check_regular_file(file, within=root, error=DatasetError, what=f"load_expert_dataset: {what}:")
     size = file.stat().st_size
     if size != expected:
         raise DatasetError(
@@ -514,8 +600,8 @@ def load_expert_dataset(path: str | os.PathLike) -> tuple[TensorDict, dict]:
         if part.exists():
             done = "?"
             try:
-                done = json.loads((part / "progress.json").read_text())["episodes_done"]
-            except (OSError, ValueError, KeyError, TypeError):
+                done = int(limits.read_json(part / "progress.json", within=part, error=DatasetError)["episodes_done"])
+            except (DatasetError, KeyError, TypeError, ValueError):
                 pass
             raise DatasetError(
                 f"load_expert_dataset: {path} does not exist, but {part} holds an unfinished collection "
@@ -533,11 +619,17 @@ def load_expert_dataset(path: str | os.PathLike) -> tuple[TensorDict, dict]:
     # datasets read-write and extends a short file with zeros on disk.
     steps = TensorDict(
         {key: _open_readonly(data / "steps" / f"{key}.memmap", _DTYPES[spec["dtype"]], (n, horizon, *spec["shape"]),
-                             f"steps[{key!r}]")
+                             f"steps[{key!r}]", path)
          for key, spec in meta["keys"].items()},
         batch_size=[n, horizon],
     )
-    lengths = _open_readonly(data / "length.memmap", torch.int64, (n,), "the episode lengths")
+    lengths_file = data / "length.memmap"
+    lengths = _open_readonly(lengths_file, torch.int64, (n,), "the episode lengths", path)
+    bad = ((lengths < 1) | (lengths > horizon)).nonzero()
+    if len(bad):
+        i = int(bad[0])
+        raise DatasetError(f"load_expert_dataset: {lengths_file}: episode {i} has length {int(lengths[i])}; every "
+                           f"episode length must lie in [1, {horizon}] (the horizon of meta.json)")
     meta = dict(meta)
     meta["lengths"] = lengths.clone()
     meta["path"] = str(path)

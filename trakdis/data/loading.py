@@ -7,7 +7,6 @@ automatically (an interrupted collection resumes when the same command runs agai
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, NamedTuple, Optional, Sequence
@@ -16,6 +15,7 @@ import torch
 from tensordict import TensorDict
 
 from trakdis.transforms import OutOfViewFill, ProprioceptionOverride, StateNoise, StateNormalizer, chain
+from trakdis.utils.limits import cap_workers, check_options
 from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.run import RunState
 
@@ -63,6 +63,10 @@ class DataConfig:
     action_labels: ActionLabels = "executed"
     """the actions a policy learns: the recorded, noisy ones (executed), or the scripted expert's
     noise-free action at each recorded step (expert: DART's clean labels; trakdis.data.labels)"""
+
+    def __post_init__(self):  # while parsing (tyro), before the run directory exists
+        check_options(self, sizes=("episodes", "num_envs"), counts=("seed",), nonnegative=("expert_noise", "aim_error"),
+                      positive=("close_radius",), prefix="data.")
 
 
 def default_dataset_path(cfg: DataConfig, *, task: str, horizon: int, pixels: bool, image_size: int = 32) -> Path:
@@ -138,7 +142,8 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
         (f", grasps closed within {cfg.close_radius:g} m" if cfg.close_radius is not None else "")
     log(f"{verb} {cfg.episodes} expert episodes of {task} into {path} (movement noise {cfg.expert_noise:g}{aim}, "
         f"{'with' if pixels else 'without'} pixels)")
-    collect_expert_dataset(path, task=task, num_episodes=cfg.episodes, num_workers=cfg.num_envs,
+    workers = cap_workers(cfg.num_envs, cfg.episodes, what="--data.num-envs", warn=log)  # no idle worker processes
+    collect_expert_dataset(path, task=task, num_episodes=cfg.episodes, num_workers=workers,
                            image_size=image_size, from_pixels=pixels, noise=cfg.expert_noise, aim_error=cfg.aim_error, seed=seed,
                            horizon=horizon, progress=progress, close_radius=cfg.close_radius)
     return path
@@ -146,8 +151,10 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 
 def _episodes_done(partial: Path) -> int:
     """Episodes an interrupted collection already wrote (0 if its progress file is unreadable)."""
+    from trakdis.utils.limits import read_json
+
     try:
-        return int(json.loads((partial / "progress.json").read_text())["episodes_done"])
+        return int(read_json(partial / "progress.json", within=partial)["episodes_done"])
     except (OSError, ValueError, KeyError, TypeError):
         return 0
 

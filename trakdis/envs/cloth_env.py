@@ -109,9 +109,9 @@ class ClothEnv(gym.Env):
         super().__init__()
         self.task = check_task(task)
         self.split = check_split(split)
-        if not (isinstance(horizon, int) and horizon >= 1):
+        if not (_is_int(horizon) and horizon >= 1):  # True is an int to Python, never an episode length
             raise ValueError(f"horizon must be a positive int, got {horizon!r}")
-        if not (isinstance(action_repeat, int) and action_repeat >= 1):
+        if not (_is_int(action_repeat) and action_repeat >= 1):
             raise ValueError(f"action_repeat must be a positive int, got {action_repeat!r}")
         if config_index is not None:
             config_index = _check_config_index(config_index, "config_index")

@@ -73,11 +73,11 @@ class PhysicsOptions:
     thickness: float = 1e-3
 
     def __post_init__(self):
-        if not (isinstance(self.resolution, int) and 4 <= self.resolution <= 30):
+        if not (isinstance(self.resolution, int) and not isinstance(self.resolution, bool) and 4 <= self.resolution <= 30):
             raise ValueError(f"resolution must be an int in [4, 30] (finer grids fail in MuJoCo, docs/tasks.md), got {self.resolution!r}")
         if not 0 < self.timestep <= 0.02:
             raise ValueError(f"timestep must be in (0, 0.02] s, got {self.timestep!r}")
-        if not (isinstance(self.substeps, int) and self.substeps >= 1):
+        if not (isinstance(self.substeps, int) and not isinstance(self.substeps, bool) and self.substeps >= 1):
             raise ValueError(f"substeps must be a positive int, got {self.substeps!r}")
         if self.solver not in ("CG", "Newton", "PGS"):
             raise ValueError(f"solver must be CG, Newton or PGS, got {self.solver!r}")

@@ -296,6 +296,18 @@ class EvalConfig:
     collector: Literal["sync", "multi_sync"] = "sync"
     """one TorchRL Collector over the batched env, or a MultiSyncCollector of --num-envs processes"""
 
+    def __post_init__(self):  # while parsing (tyro), before the run directory exists
+        from trakdis.utils.limits import cap_workers, check_option
+
+        check_option("eval_episodes", self.eval_episodes, ge=0, integer=True)
+        check_option("eval_every", self.eval_every, ge=0, integer=True)
+        check_option("num_envs", self.num_envs, ge=1, integer=True)
+        # no more envs (worker processes with --parallel) than cores: the recipes' episode counts vary by use
+        self.num_envs = cap_workers(self.num_envs, self.num_envs, unit="envs")
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
+
     def eval_protocol(self, task: str, horizon: int, *, seed: int, **kwargs: Any) -> EvalProtocol:
         """The run's :class:`EvalProtocol`: these episodes, reseeded with ``seed + 10_000`` (the eval
         configurations of every recipe run with ``--seed seed``); ``kwargs``: its other fields."""

@@ -14,6 +14,12 @@ tensors, containers and numbers only, so a crafted file cannot run code while it
 (docs/security.md). Checkpoints therefore hold only such types: :func:`rng_state` stores the NumPy
 RNG state as a plain dict with a tensor key. Resume checkpoints written before that (NumPy arrays
 inside) load with ``numpy_arrays=True``, which allow-lists NumPy's array types, nothing else.
+Before ``torch.load`` runs, the file must be a regular file and a zip archive that unpacks to at
+most :data:`~trakdis.utils.limits.MAX_EXPANSION` times its size (``max_bytes`` in all, when given).
+
+A write follows the umask (``0o666 & ~umask``, as ``open`` creates files); a write killed before its
+rename leaves a ``.<name>.<random>.tmp`` file, which :func:`remove_stale_temporaries` deletes when the
+run (or collection) owning the directory starts again.
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ import io
 import os
 import pickle
 import random
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -33,6 +40,7 @@ __all__ = [
     "save_checkpoint",
     "load_checkpoint",
     "CheckpointError",
+    "remove_stale_temporaries",
     "rng_state",
     "set_rng_state",
     "capture_state",
@@ -59,12 +67,52 @@ def _fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+def _umask() -> int:
+    """This process's umask, read without changing it where Linux tells it (``/proc/self/status``)."""
+    try:
+        with open("/proc/self/status", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: read by setting it (not thread-safe, but rare)
+    os.umask(mask)
+    return mask
+
+
+# the name of atomic_write_bytes' temporary files: "." + target name + "." + mkstemp's 8 characters + ".tmp"
+_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def remove_stale_temporaries(directory: str | Path) -> list[Path]:
+    """Delete the temporary files that :func:`atomic_write_bytes` left in ``directory`` when its process
+    was killed before the rename (regular files named ``.<name>.<8 characters>.tmp``; symlinks and
+    anything else are left alone). Call it only while no other process writes there (a run holds its
+    directory's lock). Returns the files removed."""
+    removed = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    for entry in entries:
+        if _TEMPORARY.fullmatch(entry.name) and entry.is_file(follow_symlinks=False):
+            try:
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+            except FileNotFoundError:
+                pass
+    return removed
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file in the same dir, fsync, ``os.replace``)."""
+    """Write ``data`` to ``path`` atomically (temp file in the same dir, fsync, ``os.replace``), with the
+    mode a plain ``open`` gives (``0o666 & ~umask``; ``mkstemp`` alone would leave ``0o600``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -102,6 +150,8 @@ def load_checkpoint(
     required: Iterable[str] = (),
     map_location: str | torch.device | None = "cpu",
     numpy_arrays: bool = False,
+    max_bytes: int | None = None,
+    limit_hint: str = "",
 ) -> dict[str, Any]:
     """Load a checkpoint written by :func:`save_checkpoint`.
 
@@ -110,17 +160,38 @@ def load_checkpoint(
     is refused before any of it runs. ``numpy_arrays=True`` also allows NumPy arrays (resume
     checkpoints written by earlier versions hold the NumPy RNG state as one).
 
-    Raises :class:`CheckpointError` naming the file when it is missing, unreadable, holds types
-    the safe loader refuses, is not a trakdis checkpoint, or lacks one of the ``required`` keys.
+    Before anything is unpickled, the file must be a regular file (not a FIFO or a device), a zip
+    archive (``torch.save``'s format) and unpack to at most
+    :data:`~trakdis.utils.limits.MAX_EXPANSION` times its size, and to at most ``max_bytes`` when
+    given (``limit_hint``: how the caller raises that limit, for the error).
+
+    Raises :class:`CheckpointError` naming the file when it is missing, not a regular file, not a
+    checkpoint, too large, unreadable, holds types the safe loader refuses, is not a trakdis
+    checkpoint, or lacks one of the ``required`` keys.
     """
+    from .limits import check_zip_archive, open_regular_file
+
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist")
+    with open_regular_file(path, error=CheckpointError, what="checkpoint") as fh:
+        check_zip_archive(path, max_bytes=max_bytes, error=CheckpointError, hint=limit_hint)
+        state = _torch_load(path, fh, map_location=map_location, numpy_arrays=numpy_arrays)
+    if not isinstance(state, dict) or state.get("format") != _FORMAT:
+        raise CheckpointError(f"{path} is not a trakdis checkpoint (no 'format': {_FORMAT!r} entry)")
+    missing = [k for k in required if k not in state]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks {missing}; it has {sorted(k for k in state if k != 'format')}")
+    return state
+
+
+def _torch_load(path: Path, fh, *, map_location, numpy_arrays: bool) -> Any:
     try:
         with torch.serialization.safe_globals(_numpy_array_globals() if numpy_arrays else []):
-            state = torch.load(path, map_location=map_location, weights_only=True)
+            return torch.load(fh, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as err:
         lines = str(err).strip().splitlines() or [""]
+        if not any("GLOBAL" in line or "global" in line for line in lines):  # damaged, not a refused type
+            detail = next((line for line in lines if "Unsupported" in line), lines[-1]).strip()
+            raise CheckpointError(f"{path} is not a valid checkpoint: its contents are damaged ({detail})") from err
         detail = next((line for line in lines if "GLOBAL" in line), lines[-1]).split(" Please use")[0].strip()
         raise CheckpointError(
             f"checkpoint {path} was refused: it holds objects other than tensors, containers and numbers, "
@@ -128,12 +199,6 @@ def load_checkpoint(
         ) from err
     except Exception as err:
         raise CheckpointError(f"checkpoint {path} could not be read ({type(err).__name__}: {err})") from err
-    if not isinstance(state, dict) or state.get("format") != _FORMAT:
-        raise CheckpointError(f"{path} is not a trakdis checkpoint (no 'format': {_FORMAT!r} entry)")
-    missing = [k for k in required if k not in state]
-    if missing:
-        raise CheckpointError(f"checkpoint {path} lacks {missing}; it has {sorted(k for k in state if k != 'format')}")
-    return state
 
 
 # --------------------------------------------------------------------------- RNG

@@ -162,12 +162,22 @@ class WideCSVLogger(Logger):
         self._columns: list[str] = ["step"]
         self._pending = 0
         if resume and self.path.exists():
+            from .limits import check_regular_file
+
+            check_regular_file(self.path, what="log")
             try:
                 frame = pd.read_csv(self.path)
             except pd.errors.EmptyDataError:
                 frame = pd.DataFrame(columns=["step"])
+            except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as err:
+                raise ValueError(f"{self.path} is not a readable CSV log ({type(err).__name__}: {err}); restore it, "
+                                 f"or move it away to resume with a new log") from None
             if "step" not in frame.columns:
                 raise ValueError(f"{self.path} has no 'step' column; columns are {list(frame.columns)}")
+            steps = pd.to_numeric(frame["step"], errors="coerce")
+            if steps.isna().any() or not (steps == steps.round()).all():
+                raise ValueError(f"{self.path}: its 'step' column holds values that are not step numbers; restore "
+                                 f"the log, or move it away to resume with a new log")
             for col in frame.columns:
                 if col not in self._columns:
                     self._columns.append(col)

@@ -43,8 +43,10 @@ import numpy as np
 import torch
 from torchrl.record.loggers import Logger
 
-from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from .checkpoint import (CheckpointError, load_checkpoint, remove_stale_temporaries, rng_state, save_checkpoint,
+                         set_rng_state)
 from .config import load_config, parse_config, save_config
+from .limits import MAX_SEED, check_option
 from .logger import WideCSVLogger, check_logger_backend, make_run_dir, make_torchrl_logger
 from .plot import plot_csv
 
@@ -111,6 +113,32 @@ class RunConfig:
     directory, and log.csv too); tensorboard and wandb need the extra of that name, e.g.
     pip install 'trakdis[tensorboard]'"""
 
+    def __post_init__(self):
+        # checked while the command line is parsed (tyro), before the run directory exists; a recipe's
+        # config calls super().__post_init__() from its own
+        check_option("seed", self.seed, ge=0, lt=MAX_SEED, integer=True)
+        check_option("threads", self.threads, ge=0, integer=True)
+        if self.stop_after is not None:
+            check_option("stop_after", self.stop_after, ge=0, integer=True)
+        check_device(self.device)
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
+
+
+def check_device(device: str, name: str = "--device") -> None:
+    """A ``ValueError`` naming ``name`` unless ``device`` is a torch device this machine has."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as err:
+        raise ValueError(f"{name} {device!r} is not a torch device (cpu, cuda, cuda:1, mps, ...): {err}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{name} {device}: this machine has no CUDA device")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"{name} {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    if dev.type == "mps" and not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+        raise ValueError(f"{name} {device}: MPS is not available on this machine")
+
 
 def seed_everything(seed: int) -> None:
     random.seed(seed)
@@ -159,6 +187,8 @@ class Run:
             cfg = parse_config(cfg_cls, argv, presets=presets, description=description, default=own)
             check_logger_backend(cfg.logger)
         _hold_run_dir(directory)  # before anything of the run is written
+        for stale in remove_stale_temporaries(directory):  # of an earlier process of this run, killed mid-write
+            print(f"removed {stale}, a temporary file of an interrupted write", file=sys.stderr)
         cfg = dataclasses.replace(cfg, name=directory.name, resume=False)
         save_config(cfg, saved)
         run = cls(recipe, cfg, directory)
@@ -173,6 +203,10 @@ class Run:
                 # One's own file, yet read like any other (weights_only); NumPy arrays are allowed
                 # for checkpoints written before the RNG state was stored as plain types.
                 run._resume_state = load_checkpoint(run.checkpoint_path, map_location="cpu", numpy_arrays=True)
+                saved_by = run._resume_state.get("recipe")
+                if saved_by is not None and saved_by != recipe:
+                    raise CheckpointError(f"--resume: {run.checkpoint_path} is a checkpoint of {saved_by}, not of "
+                                          f"{recipe}: it cannot continue this run")
                 run.print(f"resuming {directory} from step {run._resume_state.get('step', 0)}")
             else:
                 run.print(f"--resume: {run.checkpoint_path} does not exist yet; starting {directory} afresh")
@@ -297,6 +331,9 @@ class RunState(dict):
         if self.checkpoint is not None:
             if counters_key is None:
                 self.update({k: self.checkpoint[k] for k in counters if k in self.checkpoint})
+            elif not isinstance(self.checkpoint.get(counters_key), Mapping):
+                raise CheckpointError(f"--resume: {run.checkpoint_path} has no {counters_key!r} entry of "
+                                      f"{run.recipe}'s counters: not a checkpoint of this recipe")
             else:
                 self.update(self.checkpoint[counters_key])
         self.phases_key, self.phases = phases_key, None
@@ -314,6 +351,9 @@ class RunState(dict):
         """Load the named objects' (default: all) state from the checkpoint being resumed, if any."""
         if self.checkpoint is not None:
             for name in names or tuple(self.objects):
+                if name not in self.checkpoint:
+                    raise CheckpointError(f"--resume: {self.run.checkpoint_path} has no {name!r} entry; it has "
+                                          f"{sorted(self.checkpoint)}")
                 self.objects[name].load_state_dict(self.checkpoint[name])
 
     def restore_rng(self) -> None:
