@@ -145,6 +145,7 @@ class Table1Config(RunConfig):
     nothing of the run itself is written"""
 
     def __post_init__(self):
+        super().__post_init__()  # --seed, --threads, --device
         check_teacher_selection(self.teacher_candidates, self.teacher_select_episodes, self.teacher_select_margin)
         if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
             raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1; "

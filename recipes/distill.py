@@ -22,6 +22,7 @@ from trakdis.optim import OptimConfig
 from trakdis.policies import load_teacher_and_encoder, weight_copied_student
 from trakdis.training import SnapshotSelection, mixture_shares, train_rounds
 from trakdis.transforms import PickerOdometry
+from trakdis.utils.limits import MAX_PARAMS, check_options
 from trakdis.utils.run import Run, RunConfig, RunState
 
 
@@ -66,6 +67,7 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     select_margin: float = 1.0  # standard errors of the paired gain by which a snapshot must beat the one kept so far
     eval_teacher: bool = True  # also evaluate the teacher on the evaluation episodes
     parallel: bool = False  # step the envs in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)
+    max_params: int = MAX_PARAMS  # refuse a teacher or encoder file with a larger model (trakdis.utils.limits)
 
     def __post_init__(self):  # checked while parsing, before the run directory exists
         if self.episodes_per_round < 0 or (self.distill and self.episodes_per_round == 0 and not self.expert_data):
@@ -82,6 +84,9 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
         if self.picker_odometry == "on" and not self.proprio_pickers and self.data.action_labels != "executed":
             raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
                              f"{self.data.action_labels!r} needs 'executed'")
+        check_options(self, sizes=("batch_size", "buffer_capacity", "select_every", "max_params"),
+                      counts=("rounds", "updates_per_round"), nonnegative=("state_noise", "kl_coef"))
+        super().__post_init__()
 
     @property
     def odometry(self) -> bool:
@@ -114,7 +119,7 @@ def main(argv=None) -> dict:
     run = Run.start("distill", DistillConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
     teacher, encoder, enc_file, enc_path = load_teacher_and_encoder(cfg.teacher, cfg.encoder, root=cfg.root,
-                                                                    device=cfg.device)
+                                                                    device=cfg.device, max_params=cfg.max_params)
     task, horizon = teacher.task, teacher.horizon
     # Teacher and student read states standardised with the teacher's statistics (the student's
     # weights start as the teacher's, and the encoder's estimates live in state units).
