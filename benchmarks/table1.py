@@ -12,7 +12,11 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
 * the teacher (``online_dt.py``, ``--teacher-args``), the encoder (``train_encoder.py``,
   ``--encoder-args``) and the student (``distill.py``, ``--student-args``): the full method, TraKDis;
 * the ablations: No-Aug (the student on an encoder trained with ``--no-aug``: no flip, so no test-time
-  flip either; the default encoder does not shift), No-Pretrain (``distill.py --no-weight-copy``), No-Distill (``distill.py --no-distill``);
+  flip either; the default encoder does not shift), No-Pretrain (``distill.py --no-weight-copy``), the paper's
+  No-Distill (``distill.py --no-weight-copy --no-distill``: a DT on fresh weights fed the encoder's estimates,
+  trained on the expert's actions with the teacher's offline updates and optimiser:
+  ``trakdis.method.no_distill_stage_args``) and one more row, No-Distill (weight copy) (``distill.py --no-distill``:
+  the teacher's weights fine-tuned on the expert's actions, method ``no_distill_copy``);
 * the baselines: BC-image (``bc_image.py``, ``--bc-args``) and DT-image (``dt_image.py``,
   ``--dt-image-args``);
 * ``evaluate.py`` for each of them and for the scripted expert: ``--trials`` eval-split episodes,
@@ -61,8 +65,8 @@ from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
 from trakdis.evaluation import markdown_table, paired_difference, read_final_scores, standard_error  # noqa: E402
 from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, check_teacher_selection,  # noqa: E402
-                            encoder_stage_args, student_stage_args, teacher_candidates, teacher_stage,
-                            teacher_stage_args)
+                            encoder_stage_args, no_distill_stage_args, student_stage_args, teacher_candidates,
+                            teacher_stage, teacher_stage_args)
 from trakdis.utils.config import load_config, parse_config  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
@@ -70,13 +74,21 @@ from trakdis.utils.stages import Stages  # noqa: E402
 
 RECIPES = ROOT / "recipes"
 
-Method = Literal["expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain", "no_distill"]
-METHODS: tuple[str, ...] = ("expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain", "no_distill")
+Method = Literal["expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain", "no_distill",
+                 "no_distill_copy"]
+METHODS: tuple[str, ...] = ("expert", "teacher", "trakdis", "bc_image", "dt_image", "no_aug", "no_pretrain",
+                            "no_distill", "no_distill_copy")
 LABELS = {"expert": "expert (state)", "teacher": "teacher (state)", "trakdis": "TraKDis (image)",
           "bc_image": "BC-image", "dt_image": "DT-image", "no_aug": "No-Aug", "no_pretrain": "No-Pretrain",
-          "no_distill": "No-Distill", "trakdis_noise": "TraKDis+noise"}
-CURVE_METHODS = ("trakdis", "no_aug", "no_pretrain", "no_distill")  # the paper's Fig. 6: same x axis (distill updates)
-STUDENT_OF_TEACHER = CURVE_METHODS  # the same four arms: each built on the teacher (and its encoder)
+          "no_distill": "No-Distill", "no_distill_copy": "No-Distill (weight copy)", "trakdis_noise": "TraKDis+noise"}
+# the paper's Fig. 6 (same x axis: distill updates) and the extra No-Distill arm
+CURVE_METHODS = ("trakdis", "no_aug", "no_pretrain", "no_distill", "no_distill_copy")
+STUDENT_OF_TEACHER = CURVE_METHODS  # the same arms: each built on the teacher (and its encoder)
+# A method's stages (its distill run, its evaluation) are named after its key, but the No-Distill arms': the weight
+# copy's keeps the names it had when it was the key no_distill, the paper's gets new ones, so that --resume or
+# --report of a run saved before the paper's arm existed finds its weight-copy stages under no_distill_copy and never
+# reads them as the paper's arm (which such a run trains afresh under its own names).
+STAGE_NAMES = {"no_distill": "no_distill_paper", "no_distill_copy": "no_distill"}
 
 # The paper's Table I (W. Chen and N. Rojas, RA-L 2024; ../shared/docs/method.md): mean and, where
 # given, std over 100 trials. A reference beside our numbers, not a result of this code.
@@ -118,8 +130,8 @@ class Table1Config(RunConfig):
     """options of recipes/train_encoder.py (the method's encoder, trained also on the teacher's weight-copied
     student's images and chosen by its episodes: trakdis.method; No-Aug adds --no-aug)"""
     student_args: str = "--eval-every 2 --eval-episodes 20 --no-eval-teacher"
-    """options of recipes/distill.py beside the method's (all four arms, the curves' evaluations; the
-    ablations add their flag)"""
+    """options of recipes/distill.py beside the method's (every student arm, the curves' evaluations; the
+    ablations add their flags, the paper's No-Distill its budget: trakdis.method.no_distill_stage_args)"""
     bc_args: str = ""
     """options of recipes/bc_image.py"""
     dt_image_args: str = ""
@@ -197,7 +209,7 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
 
     def evaluate(method: str, policy_args: list[str]) -> None:  # --trials episodes of one method
         prefix = chain if method in STUDENT_OF_TEACHER or method == "teacher" else base
-        evals[method] = evaluation(f"{prefix}-eval-{method}", "summary.csv",
+        evals[method] = evaluation(f"{prefix}-eval-{STAGE_NAMES.get(method, method)}", "summary.csv",
                                    [*policy_args, "--trials", str(cfg.trials), "--videos", "0", *parallel])
 
     def made(method: str, directory: Path) -> Path:  # a method's policy exists: evaluate it (and the expert)
@@ -229,12 +241,14 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
         return stage("distill", run_name, "policy.pt",
                      [*student_stage_args(task, teacher, encoder, cfg.student_args, parallel=cfg.parallel), *flags])
 
-    if methods & {"trakdis", "no_pretrain", "no_distill"}:
+    if methods & {"trakdis", "no_pretrain", "no_distill", "no_distill_copy"}:
         encoder = encoder_stage(f"{chain}-encoder")
-    arms = {"trakdis": [], "no_pretrain": ["--no-weight-copy"], "no_distill": ["--no-distill"]}
+    arms = {"trakdis": [], "no_pretrain": ["--no-weight-copy"],
+            "no_distill": lambda: no_distill_args(cfg, task, teacher, encoder), "no_distill_copy": ["--no-distill"]}
     for method, flags in arms.items():
         if method in methods:
-            made(method, student_stage(f"{chain}-{method}", encoder, *flags))
+            made(method, student_stage(f"{chain}-{STAGE_NAMES.get(method, method)}", encoder,
+                                       *(flags() if callable(flags) else flags)))
     if "no_aug" in methods:
         made("no_aug", student_stage(f"{chain}-no_aug", encoder_stage(f"{chain}-encoder-noaug", "--no-aug")))
     # the baselines learn from the method's demonstrations and evaluate nothing themselves: evaluate.py does
@@ -263,6 +277,25 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
                              "--state-noise", *levels]),) if levels else ())
     students = {m: policies[m] for m in CURVE_METHODS if m in policies}
     return {m: evals[m] for m in METHODS if m in evals}, robust, students
+
+
+@functools.lru_cache(maxsize=None)
+def recipe_module(recipe: str):
+    """``recipes/<recipe>.py`` imported once, to parse a stage's arguments (its configuration and presets)."""
+    from trakdis.utils.stages import import_recipe
+
+    return import_recipe(RECIPES / f"{recipe}.py", prefix="trakdis_table1_")
+
+
+def no_distill_args(cfg: Table1Config, task: str, teacher: Path, encoder: Path) -> list[str]:
+    """The paper's No-Distill's flags after the student stage's (:func:`trakdis.method.no_distill_stage_args`): the
+    teacher stage's and the student stage's arguments parsed as their recipes parse them."""
+    online_dt, distill = recipe_module("online_dt"), recipe_module("distill")
+    teacher_cfg = parse_config(online_dt.OnlineDTConfig, teacher_stage_args(task, cfg.teacher_args),
+                               presets=online_dt.PRESETS)
+    student_cfg = parse_config(distill.DistillConfig, student_stage_args(task, teacher, encoder, cfg.student_args),
+                               presets=distill.PRESETS)
+    return no_distill_stage_args(teacher_cfg, student_cfg)
 
 
 class FinishedStages:
@@ -382,6 +415,9 @@ def write_tables(run: Run, cfg: Table1Config, evals: dict[tuple[str, str], list[
             "Normalized performance at the episode's end; mean +- std over all episodes of all seeds. "
             "The paper's numbers (100 trials, one run) are beside ours; '-': the paper gives none.", "",
             *([note, ""] if note else []),
+            *(["No-Distill: the paper's ablation (a DT on fresh weights trained on the expert's actions, the "
+               "teacher's offline budget); No-Distill (weight copy), not in the paper: the teacher's weights "
+               "fine-tuned on the expert's actions.", ""] if {"no_distill", "no_distill_copy"} & set(methods) else []),
             markdown_table(pd.DataFrame(wide)), "",
             "Per method: percentiles over all episodes; `seed_mean_*`: the spread of the per-seed means; "
             "`TraKDis - this`: paired per episode within each seed, the mean over seeds +- its standard error over "

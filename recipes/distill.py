@@ -3,6 +3,7 @@
     python recipes/distill.py                                  # latest teacher + latest encoder
     python recipes/distill.py --teacher runs/online_dt/A --encoder runs/train_encoder/B
     python recipes/distill.py --no-weight-copy                 # ablation No-Pretrain
+    python recipes/distill.py --no-weight-copy --no-distill    # the paper's No-Distill (its budget: trakdis.method)
     python recipes/distill.py --select-episodes 0              # the last round's weights (no selection)
 
 Steps, ablations, outputs (``runs/distill/<name>/``), options and measurements: docs/recipes/distill.md.
@@ -32,7 +33,9 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
 
     teacher: str = "latest"  # teacher policy file or online_dt run directory ('latest': the newest under <root>)
     encoder: str = "latest"  # encoder.pt or train_encoder run directory ('latest': the newest under <root>)
-    weight_copy: bool = True  # initialise the student with the teacher's weights (--no-weight-copy: No-Pretrain)
+    weight_copy: bool = True
+    """initialise the student with the teacher's weights (--no-weight-copy: fresh weights, never kept by the
+    selection; No-Pretrain, with --no-distill the paper's No-Distill)"""
     distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
     state_noise: float = 0.0  # std of Gaussian noise on the estimated state of every training window (robustness)
     proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
@@ -48,6 +51,7 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     batch_size: int = 64  # windows per update
     lr: float = 1e-4  # learning rate
     warmup_steps: int = 20  # linear learning-rate warm-up (updates)
+    min_lr_fraction: float = 1.0  # cosine decay of --lr to this fraction by the last round's last update (1: constant)
     loss_function: Literal["nll", "mse"] = "nll"  # the student's NLL of the teacher's action (paper), or squared error
     return_to_go: Literal["acting", "hindsight"] = "acting"  # rollouts' return-to-go: the acting countdown, or reached
     kl_coef: float = 0.0  # weight of an extra teacher-student KL term (0: the paper's NLL only)
@@ -78,6 +82,8 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
         if self.expert_coef and not self.expert_actions:
             raise ValueError(f"--expert-coef {self.expert_coef}: the expert's actions exist on the expert data alone "
                              "(--expert-data, --episodes-per-round 0, with distillation)")
+        if not 0.0 < self.min_lr_fraction <= 1.0:  # also NaN
+            raise ValueError(f"--min-lr-fraction {self.min_lr_fraction}: must be in (0, 1]")
         if (self.select_episodes or 0) < 0 or self.select_every < 1:
             raise ValueError(f"--select-episodes {self.select_episodes} / --select-every {self.select_every}: "
                              "need >= 0 episodes and >= 1 round")
@@ -143,7 +149,8 @@ def main(argv=None) -> dict:
                                 expert_coef=expert_coef)
     else:
         loss = MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=dt_cfg.action_eps)
-    updater = cfg.make_updater(loss)
+    updater = cfg.make_updater(loss, decay_steps=cfg.rounds * cfg.updates_per_round,
+                               min_lr_fraction=cfg.min_lr_fraction)
     buffer = student_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, normalizer=normalizer,
                             distill=cfg.distill, proprio_dims=proprio_dims, state_noise=cfg.state_noise, seed=cfg.seed,
                             early_windows=cfg.early_windows, relabel_return_to_go=not cfg.distill or cfg.expert_data
@@ -172,7 +179,9 @@ def main(argv=None) -> dict:
 
     eval_env = cfg.make_env(student_handle)
     # Early stopping: the snapshots play the same train-split episodes (configurations no evaluation
-    # plays); the weight copy is kept unless a later snapshot beats it measurably (docs: the cause).
+    # plays); the weight copy is kept unless a later snapshot beats it measurably (docs: the cause). Fresh weights
+    # (--no-weight-copy) are no candidate: there is no copy to guard, and an untrained DT kept because no round beat
+    # it measurably would be the final policy; the first round scored is then the one the later ones must beat.
     select_episodes = SELECT_EPISODES[task] if cfg.select_episodes is None else cfg.select_episodes
     select_env = cfg.make_env(student_handle, "train") if select_episodes and cfg.rounds else None
     selection = SnapshotSelection.on_episodes(run, student_handle, evals, select_env, state, episodes=select_episodes,
@@ -192,7 +201,7 @@ def main(argv=None) -> dict:
                                                        keep_mode=student, desc="eval (teacher)").summary()["mean"]
         if state["initial_eval"] is None:
             state["initial_eval"] = evaluate("student before training")
-        if select_env is not None:
+        if select_env is not None and cfg.weight_copy:
             selection.consider(0)
 
         def roll_out(r: int):  # round r's rollouts into the buffer (--act mixed: DAgger's decaying mixture)

@@ -16,7 +16,7 @@ import json
 import shlex
 from os import PathLike
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from trakdis.utils.stages import Stages
@@ -100,6 +100,33 @@ def student_stage_args(task: str, teacher: str | PathLike, encoder: str | PathLi
     estimates, distilled; it evaluates nothing itself unless ``extra`` says so."""
     return [*data_args(task), "--teacher", str(teacher), "--encoder", str(encoder), "--eval-episodes", "0",
             *_flags(parallel=parallel), *shlex.split(extra)]
+
+
+def no_distill_stage_args(teacher: Any, student: Any) -> list[str]:
+    """``recipes/distill.py`` flags, after a student stage's (:func:`student_stage_args`), of the paper's No-Distill
+    ablation (section IV-D: "the decision transformer and the CNN encoder [trained] to imitate the heuristic expert
+    demonstrations", one of the variants without the teacher's weights): a DT of the teacher's sizes on fresh weights
+    (``--no-weight-copy``) reading the method's encoder's estimates, trained on the expert dataset's own actions
+    (``--no-distill``), the last round's weights kept. ``teacher``: the teacher stage's parsed configuration
+    (``recipes/online_dt.py``'s ``OnlineDTConfig``); ``student``: the student stage's (``DistillConfig``), whose
+    ``rounds`` the updates are spread over (the same evaluation points on the curve as the other arms).
+
+    The teacher's weights fine-tuned on the expert's actions (``--no-distill`` alone) is another, stronger arm:
+    ``benchmarks/table1.py``'s ``no_distill_copy``."""
+    # Budget: a DT on fresh weights is trained, not fine-tuned, so it gets the teacher's offline recipe (its updates,
+    # windows per update, optimiser and lr schedule), not the weight copy's short low-lr fine-tune, on which a fresh
+    # DT barely leaves its initialisation (No-Pretrain's rows in docs/table1.md).
+    # Encoder: the method's (pre-trained with augmentation on the simulator's states), kept frozen, its estimates
+    # computed once, as for the method's student: the arm then differs from TraKDis in the teacher's weights and
+    # labels alone, where a jointly fine-tuned encoder would be a second difference (distill.py trains no encoder).
+    # Selection: none (the last round's, as the teacher's offline phase keeps its last update): the train-split
+    # selection keeps its first snapshot unless a later one beats it measurably, a guard of the weight copy; with
+    # fresh weights that would favour the least trained snapshot.
+    rounds = max(int(student.rounds), 1)
+    optim = {f: getattr(teacher, f) for f in ("optimizer", "lr", "weight_decay", "warmup_steps", "grad_clip")}
+    return ["--no-weight-copy", "--no-distill", "--updates-per-round", str(-(-int(teacher.offline_updates) // rounds)),
+            "--batch-size", str(teacher.batch_size), "--min-lr-fraction", str(teacher.min_lr_fraction),
+            *[a for f, v in optim.items() for a in (f"--{f.replace('_', '-')}", str(v))], "--select-episodes", "0"]
 
 
 def baseline_stage_args(task: str, extra: str = "") -> list[str]:

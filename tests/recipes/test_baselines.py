@@ -15,7 +15,7 @@ from trakdis.evaluation import run_episodes
 from trakdis.envs import close_env
 from trakdis.policies import load_policy
 
-from .conftest import DATA, HORIZON, run_recipe
+from .conftest import DATA, HORIZON, load_recipe, run_recipe
 
 TRUNK = ["--trunk.channels", 4, 4, 4, 4, "--trunk.hidden-dim", 16, "--trunk.feature-dim", 8]
 TINY_DT = ["--model.embed-dim", 16, "--model.n-layer", 1, "--model.n-head", 1, "--model.context-len", 3]
@@ -128,8 +128,8 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert set(frame["method"]) == set(bench.METHODS) and (frame["n"] == 2).all() and (frame["seeds"] == 1).all()
         md = (out / "table1.md").read_text()
         assert "| ClothFold (ours) |" in md and "| ClothFold (paper) | 0.706 +- 0.159 | 0.740 +- 0.111 | 0.583 +- 0.190 |" in md
-        for label in ("BC-image", "DT-image", "No-Aug", "No-Pretrain", "No-Distill", "p25", "seed_mean_std",
-                      "TraKDis - this"):
+        for label in ("BC-image", "DT-image", "No-Aug", "No-Pretrain", "| No-Distill |", "No-Distill (weight copy)",
+                      "p25", "seed_mean_std", "TraKDis - this"):
             assert label in md, label
         # TraKDis minus each method, paired per episode (one seed: the standard error over its episodes)
         evaluations = workdir / "runs" / "evaluate"
@@ -158,9 +158,18 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         noisy = json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-trakdis_noise" / "config.json").read_text())
         assert noisy["state_noise"] == 0.001
         timings = pd.read_csv(out / "timings.csv")
-        # teacher, 2 encoders, 4 distills (+1 with noise), 2 baselines, 8 evaluations (+2 over the noise levels)
-        assert len(timings) == 20
-        assert json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-no_pretrain" / "config.json").read_text())["weight_copy"] is False
+        # teacher, 2 encoders, 5 distills (+1 with noise), 2 baselines, 9 evaluations (+2 over the noise levels)
+        assert len(timings) == 22
+        distills = workdir / "runs" / "distill"
+        assert json.loads((distills / "t1-ClothFold-s0-no_pretrain" / "config.json").read_text())["weight_copy"] is False
+        # the paper's No-Distill: fresh weights, the expert's actions, the teacher's 2 offline updates in the 1 round;
+        # the weight copy's arm under the stage name the key no_distill had before
+        paper = json.loads((distills / "t1-ClothFold-s0-no_distill_paper" / "config.json").read_text())
+        assert (paper["weight_copy"], paper["distill"], paper["updates_per_round"], paper["select_episodes"]) == (
+            False, False, 2, 0)
+        copy = json.loads((distills / "t1-ClothFold-s0-no_distill" / "config.json").read_text())
+        assert (copy["weight_copy"], copy["distill"], copy["updates_per_round"]) == (True, False, 1)
+        assert (evaluations / "t1-ClothFold-s0-eval-no_distill_paper" / "summary.csv").exists()
         for baseline in ("bc_image", "dt_image"):  # evaluated by evaluate.py only, on 2 workers like the others
             log = pd.read_csv(workdir / "runs" / baseline / f"t1-ClothFold-s0-{baseline}" / "log.csv")
             assert "eval/normalized_performance" not in log.columns, baseline
@@ -175,7 +184,7 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         again = bench.main(["--name", "t1", "--resume"])
         assert "run directory:" not in capsys.readouterr().out  # no stage ran again
         pd.testing.assert_frame_equal(frame, again)
-        assert len(pd.read_csv(out / "timings.csv")) == 20
+        assert len(pd.read_csv(out / "timings.csv")) == 22
         # --report: the finished evaluations tabulated into report/, nothing run, nothing of the run written; an
         # evaluation without its summary (still running) is left out and counted as to come
         saved = {f: (out / f).read_bytes() for f in ("config.json", "timings.csv", "table1.md", "table1.csv")}
@@ -185,7 +194,7 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert set(partial["method"]) == set(bench.METHODS) - {"dt_image"}
         out_text = capsys.readouterr().out
         assert "run directory:" not in out_text and "started" not in out_text and "done in" not in out_text
-        assert "So far: the 9 of 10 evaluations that have finished" in (out / "report" / "table1.md").read_text()
+        assert "So far: the 10 of 11 evaluations that have finished" in (out / "report" / "table1.md").read_text()
         assert (out / "report" / "curves_ClothFold.png").exists()
         assert saved == {f: (out / f).read_bytes() for f in saved}
         with pytest.raises(ValueError, match="only --tasks and --methods may narrow it, not --trials"):
@@ -235,19 +244,31 @@ def test_table1_stages_and_their_options():
     cfg = parse_config(bench.Table1Config, ["--noise-levels", "0", "1e-3", "--noise-trials", "7", "--methods", *methods])
     stages = Recorder()
     evals, robust, students = bench.run_task_seed(stages, cfg, "t", "ClothFold", 3)
-    assert set(students) == {"trakdis", "no_aug", "no_pretrain", "no_distill"}
+    assert set(students) == {"trakdis", "no_aug", "no_pretrain", "no_distill", "no_distill_copy"}
     assert set(evals) == set(methods) and set(robust) == {"trakdis", "trakdis_noise"}
     calls = stages.calls
     assert {seed for _, _, seed in calls.values()} == {3}
     evaluations = [args for recipe, args, _ in calls.values() if recipe == "evaluate"]
-    assert len(evaluations) == 9 and all("--parallel" in a for a in evaluations)
+    assert len(evaluations) == 10 and all("--parallel" in a for a in evaluations)
     # --overlap (default): every evaluation queued as soon as its policy exists (the teacher's and the expert's first)
     order = list(calls)
     assert sorted(stages.submitted) == sorted(n for n, (recipe, _, _) in calls.items() if recipe == "evaluate")
     assert order.index("t-ClothFold-s3-eval-teacher") < order.index("t-ClothFold-s3-encoder")
     assert order.index("t-ClothFold-s3-eval-trakdis") < order.index("t-ClothFold-s3-no_pretrain")
     students = {name: args for name, (recipe, args, _) in calls.items() if recipe == "distill"}
-    assert len(students) == 5 and all("--parallel" in a for a in students.values())
+    assert len(students) == 6 and all("--parallel" in a for a in students.values())
+    # the paper's No-Distill: fresh weights, the expert's actions, the teacher's offline recipe (1500 updates of 64
+    # windows, lr 1e-3 decayed to a tenth) over the student's 10 rounds, the last round kept; the weight copy's arm:
+    # --no-distill alone, under the stage names the key no_distill had before
+    paper = parse_config(load_recipe("distill").DistillConfig, students["t-ClothFold-s3-no_distill_paper"])
+    assert (paper.weight_copy, paper.distill, paper.rounds, paper.updates_per_round, paper.batch_size) == (
+        False, False, 10, 150, 64)
+    assert (paper.lr, paper.warmup_steps, paper.min_lr_fraction, paper.select_episodes) == (1e-3, 100, 0.1, 0)
+    copy = parse_config(load_recipe("distill").DistillConfig, students["t-ClothFold-s3-no_distill"])
+    assert (copy.weight_copy, copy.distill, copy.updates_per_round, copy.lr, copy.select_episodes) == (
+        True, False, 50, 1e-4, None)
+    assert evals["no_distill"] == Path("runs") / "evaluate" / "t-ClothFold-s3-eval-no_distill_paper"
+    assert evals["no_distill_copy"] == Path("runs") / "evaluate" / "t-ClothFold-s3-eval-no_distill"
     # the method's encoder (trakdis.method, as recipes/pipeline.py runs it): on the teacher's weight-copied student,
     # three members, the copy's selection; No-Aug the same encoder without augmentation
     teacher = str(Path("runs") / "online_dt" / "t-ClothFold-s3-teacher")
@@ -287,6 +308,24 @@ def test_table1_stages_and_their_options():
                                                                   "--methods", *methods]), "t", "ClothFold", 0)
     assert not any("--parallel" in args for _, args, _ in stages.calls.values()) and not stages.submitted
     assert not any("noise" in name for name in stages.calls)  # no robustness study
+
+
+def test_table1_no_distill_rows_the_papers_and_the_weight_copys():
+    """Method no_distill is the paper's No-Distill (its label); the weight copy fine-tuned on the expert's actions is the
+    extra row no_distill_copy, both selectable and both on the curves; their stages are named apart, the weight
+    copy's as the key no_distill named them before, so that a run saved then never reads them as the paper's arm."""
+    bench = load_benchmark()
+    from trakdis.utils.config import parse_config
+
+    assert bench.METHODS[-2:] == ("no_distill", "no_distill_copy")
+    assert (bench.LABELS["no_distill"], bench.LABELS["no_distill_copy"]) == ("No-Distill", "No-Distill (weight copy)")
+    assert {"no_distill", "no_distill_copy"} <= set(bench.CURVE_METHODS) == set(bench.STUDENT_OF_TEACHER)
+    assert bench.STAGE_NAMES == {"no_distill": "no_distill_paper", "no_distill_copy": "no_distill"}
+    assert len(set(bench.LABELS.values())) == len(bench.LABELS)
+    cfg = parse_config(bench.Table1Config, ["--methods", "no_distill_copy", "no_distill"])
+    assert cfg.methods == ("no_distill_copy", "no_distill")
+    with pytest.raises(SystemExit):
+        parse_config(bench.Table1Config, ["--methods", "no_distill_weight_copy"])
 
 
 def test_table1_versus_trakdis_pairs_within_seeds():

@@ -6,7 +6,8 @@ import pandas as pd
 import pytest
 
 from trakdis.method import (CANDIDATE_SEED_STRIDE, ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, encoder_stage_args,
-                            student_stage_args, teacher_candidates, teacher_stage, teacher_stage_args)
+                            no_distill_stage_args, student_stage_args, teacher_candidates, teacher_stage,
+                            teacher_stage_args)
 from trakdis.utils.config import parse_config
 
 from .conftest import load_recipe
@@ -143,6 +144,32 @@ def test_teacher_stage_keeps_the_candidate_that_folds_best_on_the_train_split(tm
             teacher_stage(stages, "s-teacher", args, seed=0, **bad)
 
 
+def test_the_papers_no_distill_is_a_fresh_dt_on_the_experts_actions_with_the_teachers_offline_recipe():
+    """no_distill_stage_args after a student stage's: no weight copy, the expert's actions (no teacher label, no
+    expert-action term), the last round kept, and the teacher's offline updates, windows and optimiser spread over the
+    student's rounds (rounded up), whatever the two stages' own options say."""
+    online_dt, distill = load_recipe("online_dt"), load_recipe("distill")
+
+    def arm(teacher_extra: str, student_extra: str):
+        teacher = parse_config(online_dt.OnlineDTConfig, teacher_stage_args("ClothFold", teacher_extra),
+                               presets=online_dt.PRESETS)
+        args = student_stage_args("ClothFold", "t.pt", "e.pt", student_extra)
+        student = parse_config(distill.DistillConfig, args, presets=distill.PRESETS)
+        return teacher, parse_config(distill.DistillConfig, [*args, *no_distill_stage_args(teacher, student)],
+                                     presets=distill.PRESETS)
+
+    teacher, paper = arm(TEACHER_ARGS, "--lr 3e-4 --select-episodes 30 --batch-size 16")
+    assert (paper.weight_copy, paper.distill, paper.expert_actions, paper.episodes_per_round) == (False, False, False, 0)
+    assert paper.select_episodes == 0 and paper.rounds == 10 and paper.rounds * paper.updates_per_round == 1500
+    for option in ("batch_size", "optimizer", "lr", "weight_decay", "warmup_steps", "grad_clip", "min_lr_fraction"):
+        assert getattr(paper, option) == getattr(teacher, option), option
+    assert (paper.lr, paper.min_lr_fraction) == (1e-3, 0.1)  # decayed as the teacher's offline phase
+    teacher, paper = arm("--preset paper", "--preset paper")  # 5000 updates of 256 windows over 60 rounds
+    assert (paper.rounds, paper.updates_per_round, paper.batch_size, paper.optimizer, paper.lr) == (
+        60, 84, 256, "lamb", 1e-4)
+    assert arm(TEACHER_ARGS, "--rounds 0")[1].updates_per_round == 1500  # no rounds: the budget in one
+
+
 @pytest.mark.parametrize("bad", [["--teacher-candidates", "0"],
                                  ["--teacher-candidates", "2", "--teacher-select-episodes", "1"],
                                  ["--teacher-select-margin", "-1"]])
@@ -161,7 +188,7 @@ def test_table1_names_the_stages_after_the_kept_teacher(tmp_path):
     stages = FakeStages(tmp_path, [[0.0, 0.1, 0.0], [0.8, 0.9, 0.7]])
     evals, _, students = bench.run_task_seed(stages, cfg, "t", "ClothFold", 1)
     names = [name for _, name, _, _ in stages.calls]
-    assert {"t-ClothFold-s1-c1-encoder", "t-ClothFold-s1-c1-trakdis", "t-ClothFold-s1-c1-no_distill",
+    assert {"t-ClothFold-s1-c1-encoder", "t-ClothFold-s1-c1-trakdis", "t-ClothFold-s1-c1-no_distill_paper",
             "t-ClothFold-s1-c1-eval-teacher", "t-ClothFold-s1-bc_image", "t-ClothFold-s1-eval-bc_image"} <= set(names)
     assert not any(n.endswith("-s1-encoder") for n in names)
     encoder = next(a for r, n, a, _ in stages.calls if r == "train_encoder")

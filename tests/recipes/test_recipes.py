@@ -329,6 +329,36 @@ def test_distill_ablations(workdir, teacher, encoder):
     assert ck["proprio_dims"] == list(range(12, 18))  # ClothFold: two pickers after the 4 corners
     assert load_policy(workdir / "runs" / "distill" / "ablation").proprio_dims == tuple(range(12, 18))
     assert ck["picker_odometry"] is False  # off with --proprio-pickers: proprioception gives the pickers
+    # fresh weights are no candidate of the selection: the rounds' snapshots alone are scored
+    assert list(ck["selection_scores"]) == [1, 2] and ck["selected_round"] in (1, 2)
+
+
+def test_distill_the_papers_no_distill_starts_from_fresh_weights(workdir, teacher, encoder):
+    """The paper's No-Distill (trakdis.method.no_distill_stage_args on the tiny teacher's and student's
+    configurations): the expert's actions (the DT's NLL, no teacher label) over the teacher's offline updates, the
+    last round kept; its student starts from weights other than the teacher's (a run of no rounds saves them)."""
+    from trakdis.method import no_distill_stage_args
+    from trakdis.utils.config import load_config, parse_config
+
+    teacher_cfg = load_config(load_recipe("online_dt").OnlineDTConfig, teacher / "config.json")
+    args = [str(a) for a in distill_args("paper_nd", "--no-eval-teacher", "--eval-every", 0, "--episodes-per-round", 0)]
+    flags = no_distill_stage_args(teacher_cfg, parse_config(load_recipe("distill").DistillConfig, args))
+    assert flags[:4] == ["--no-weight-copy", "--no-distill", "--updates-per-round", "3"]  # 6 offline updates, 2 rounds
+    out = run_recipe(workdir, "distill", *args, *flags)
+    assert "expert imitation" in out.stdout and "weight copy False" in out.stdout
+    frame = read_log(workdir / "runs" / "distill" / "paper_nd")
+    assert frame["train/loss_nll"].notna().sum() == 2 and "train/loss_distill" not in frame.columns
+    assert "selection/normalized_performance" not in frame.columns  # --select-episodes 0: the last round
+    assert frame["step"].max() == teacher_cfg.offline_updates
+    ck = load_checkpoint(workdir / "runs" / "distill" / "paper_nd" / "policy.pt")
+    assert (ck["weight_copy"], ck["distill"], ck["expert_coef"], ck["selected_round"]) == (False, False, 0.0, None)
+    fresh_args = distill_args("paper_nd0", "--no-eval-teacher", "--eval-episodes", 0, "--episodes-per-round", 0)
+    run_recipe(workdir, "distill", *fresh_args, *flags, "--rounds", 0)
+    fresh = load_checkpoint(workdir / "runs" / "distill" / "paper_nd0" / "policy.pt")["actor"]
+    copy = load_checkpoint(teacher / "policy.pt")["actor"]
+    weights = [k for k, v in copy.items() if v.is_floating_point() and v.dim() == 2]
+    assert fresh.keys() == copy.keys() and weights
+    assert not any(torch.equal(fresh[k], copy[k]) for k in weights)  # not one weight matrix is the teacher's
 
 
 def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
