@@ -22,7 +22,7 @@ import torch
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories
 from trakdis.envs.specs import TaskName
 from trakdis.utils.config import parse_config
-from trakdis.utils.limits import MAX_HORIZON, check_option, check_options
+from trakdis.utils.limits import MAX_HORIZON, cap_workers, check_option, check_options
 from trakdis.utils.phases import available_workers
 
 
@@ -68,8 +68,9 @@ def main(argv=None):
     cfg = parse_config(CollectConfig, argv, description=__doc__)
     torch.set_num_threads(max(1, cfg.threads))
     t0 = time.time()
+    num_envs = cap_workers(cfg.num_envs, cfg.episodes, what="--num-envs", warn=print)  # no idle worker processes
     data = DataConfig(path=cfg.path, root=cfg.root, episodes=cfg.episodes, expert_noise=cfg.expert_noise,
-                      close_radius=cfg.close_radius, num_envs=cfg.num_envs, seed=cfg.seed)
+                      close_radius=cfg.close_radius, num_envs=num_envs, seed=cfg.seed)
     path = ensure_dataset(data, task=cfg.task, horizon=cfg.horizon, seed=0, pixels=cfg.pixels,
                           image_size=cfg.image_size, progress=cfg.progress)
     td, lengths = load_trajectories(path)

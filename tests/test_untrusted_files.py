@@ -339,3 +339,136 @@ def test_negative_grad_clip_is_refused_before_the_run_directory(tmp_path, capsys
     assert not (tmp_path / "runs").exists()
     with pytest.raises(ValueError, match="grad_clip must be > 0"):
         Updater(torch.nn.Linear(2, 2), grad_clip=-1.0)
+
+
+@pytest.mark.parametrize("recipe, args, flag", [
+    ("online_dt", ["--batch-size", "0"], "--batch-size must be an int >= 1, got 0"),
+    ("online_dt", ["--log-every", "0"], "--log-every must be an int >= 1"),
+    ("online_dt", ["--checkpoint-every", "0"], "--checkpoint-every must be an int >= 1"),
+    ("online_dt", ["--offline-updates", "-1"], "--offline-updates must be an int >= 0"),
+    ("online_dt", ["--warmup-steps", "-5"], "--warmup-steps must be an int >= 0"),
+    ("online_dt", ["--rtg-scale", "0"], "--rtg-scale must be a finite number > 0"),
+    ("online_dt", ["--threads", "-1"], "--threads must be an int >= 0"),
+    ("online_dt", ["--device", "bogus"], "--device 'bogus' is not a torch device"),
+    ("online_dt", ["--seed", str(2**64)], "--seed must be an int >= 0 and < 9.22337e+18"),
+    ("online_dt", ["--lr", "nan"], "--lr must be a finite number > 0"),
+    ("evaluate", ["--trials", "0"], "--trials must be an int >= 1"),
+    ("evaluate", ["--videos", "-1"], "--videos must be an int >= 0"),
+    ("evaluate", ["--fps", "0"], "--fps must be a finite number > 0"),
+    ("evaluate", ["--num-envs", "0"], "--num-envs must be an int >= 1"),
+    ("train_encoder", ["--batch-size", "0"], "--batch-size must be an int >= 1"),
+    ("train_encoder", ["--members", "1000"], "--members must be an int <= 64"),
+    ("distill", ["--batch-size", "0"], "--batch-size must be an int >= 1"),
+    ("distill", ["--grad-clip", "-1"], "--grad-clip must be a finite number >= 0"),
+    ("collect", ["--episodes", "0"], "--episodes must be an int >= 1"),
+    ("collect", ["--horizon", "100000"], "--horizon must be an int <= 10000")])
+def test_option_ranges_are_checked_while_parsing(tmp_path, capsys, recipe, args, flag):
+    """Each bad number ends at parse time, naming its flag, before a run directory (or dataset) exists."""
+    from trakdis.utils.config import parse_config
+    from trakdis.utils.stages import import_recipe
+
+    module = import_recipe(RECIPES / f"{recipe}.py")
+    cls = next(v for k, v in vars(module).items() if k.endswith("Config") and getattr(v, "__module__", "") == module.__name__)
+    with pytest.raises(SystemExit):
+        parse_config(cls, args + ["--root", str(tmp_path / "runs")])
+    assert flag in plain(capsys.readouterr().err)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_pipeline_checks_the_later_stages_options_first(tmp_path, capsys):
+    from trakdis.utils.stages import Stages, import_recipe
+
+    pipeline = import_recipe(RECIPES / "pipeline.py")
+
+    class FakeRun:
+        dir = tmp_path / "pipeline"
+
+    for flag, args in (("--encoder-args", "--batch-size 0"), ("--student-args", "--no-such-option 1")):
+        cfg = pipeline.parse_config(pipeline.PipelineConfig, [f"{flag}={args}"])
+        with pytest.raises(SystemExit, match=f"pipeline.py {flag}='{args}': recipes/.* refuses these options"):
+            pipeline.check_stage_args(Stages(FakeRun(), RECIPES), cfg)
+    pipeline.check_stage_args(Stages(FakeRun(), RECIPES), pipeline.parse_config(pipeline.PipelineConfig, []))
+    assert not FakeRun.dir.exists()
+
+
+def test_gym_make_refuses_a_bool_horizon():
+    import gymnasium as gym
+
+    import trakdis.envs  # noqa: F401  (registers the ids)
+
+    for kw in ({"horizon": True}, {"action_repeat": True}):
+        with pytest.raises(ValueError, match="must be a positive int, got True"):
+            gym.make("trakdis/ClothFold-v0", **kw)
+
+
+# --------------------------------------------------------------------------- run directories
+def _run_config():
+    from dataclasses import dataclass
+
+    from trakdis.utils.run import RunConfig
+
+    @dataclass
+    class Cfg(RunConfig):
+        steps: int = 1
+
+    return Cfg
+
+
+def test_a_checkpoint_of_another_recipe_is_refused_on_resume(tmp_path):
+    from trakdis.utils.run import Run, RunState
+
+    Cfg = _run_config()
+    run = Run.start("train_encoder", Cfg, ["--root", str(tmp_path), "--name", "x"])
+    RunState(run, {"epoch": 0}, step_key="epoch").save()
+    run.finish()
+    other = tmp_path / "online_dt" / "x"
+    other.mkdir(parents=True)
+    for name in ("config.json", "checkpoint.pt"):
+        (other / name).write_bytes((run.dir / name).read_bytes())
+    with pytest.raises(CheckpointError, match="checkpoint.pt is a checkpoint of train_encoder, not of online_dt"):
+        Run.start("online_dt", Cfg, ["--root", str(tmp_path), "--name", "x", "--resume"])
+    # a checkpoint of the recipe that lacks its counters names the file
+    save_checkpoint(run.dir / "checkpoint.pt", {"step": 0, "recipe": "train_encoder"})
+    resumed = Run.start("train_encoder", Cfg, ["--root", str(tmp_path), "--name", "x", "--resume"])
+    with pytest.raises(CheckpointError, match="checkpoint.pt has no 'counters' entry"):
+        RunState(resumed, {"epoch": 0}, step_key="epoch")
+    resumed.finish()
+
+
+def test_corrupt_log_csv_on_resume_names_the_file(tmp_path):
+    from trakdis.utils.logger import WideCSVLogger
+
+    (tmp_path / "log.csv").write_bytes(b'step,a\n1,2\n"unterminated\n\xff\xfe,3,4,5\n')
+    with pytest.raises(ValueError, match=r"log.csv (is not a readable CSV log|: its 'step' column)"):
+        WideCSVLogger(tmp_path / "log.csv", resume=True)
+    (tmp_path / "log.csv").write_text("step,a\nabc,2\n")
+    with pytest.raises(ValueError, match="log.csv: its 'step' column holds values that are not step numbers"):
+        WideCSVLogger(tmp_path / "log.csv", resume=True)
+
+
+def test_temporary_files_of_a_killed_write_are_removed_at_the_next_start(tmp_path):
+    from trakdis.utils.run import Run
+
+    Cfg = _run_config()
+    run = Run.start("r", Cfg, ["--root", str(tmp_path), "--name", "x"])
+    run.finish()
+    stale = [run.dir / ".checkpoint.pt.a1b2c3d4.tmp", run.dir / ".config.json.zz_09xyq.tmp"]
+    for file in stale:
+        file.write_bytes(b"partial")
+    (run.dir / "mine.tmp").write_bytes(b"not a trakdis temporary")
+    Run.start("r", Cfg, ["--root", str(tmp_path), "--name", "x", "--resume"]).finish()
+    assert not any(file.exists() for file in stale) and (run.dir / "mine.tmp").exists()
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_atomic_writes_follow_the_umask(tmp_path, umask):
+    from trakdis.utils.checkpoint import atomic_write_bytes
+
+    old = os.umask(umask)
+    try:
+        atomic_write_bytes(tmp_path / "f.json", b"{}")
+        with open(tmp_path / "plain", "wb"):
+            pass
+    finally:
+        os.umask(old)
+    assert (tmp_path / "f.json").stat().st_mode & 0o777 == (tmp_path / "plain").stat().st_mode & 0o777 == 0o666 & ~umask

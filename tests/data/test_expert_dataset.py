@@ -289,3 +289,29 @@ def test_no_progress_env_var_wins_over_progress_true(tmp_path, monkeypatch, caps
     monkeypatch.setenv("TRAKDIS_NO_PROGRESS", "0")
     _collect_bar(tmp_path / "loud")
     assert "collect Toy" in capsys.readouterr().err
+
+
+def test_a_full_disk_is_an_error_naming_it_before_any_mapped_write(tmp_path, monkeypatch):
+    """A memory-mapped write to a full disk kills the process with SIGBUS: the space is checked first."""
+    import collections
+
+    import trakdis.data.dataset as dataset
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(dataset.shutil, "disk_usage", lambda p: usage(10**6, 10**6 - 100, 100))
+    with pytest.raises(DatasetError, match=r"needs [\d.,]+ MiB more on the disk of .*ds.partial, which has 0.0 MiB free"):
+        _collect(tmp_path / "ds", num_episodes=2)
+    assert not list((tmp_path / "ds.partial").glob("data/**/*.memmap"))  # nothing mapped
+    monkeypatch.undo()
+    steps, meta = load_expert_dataset(_collect(tmp_path / "ds", num_episodes=2))  # resumes once there is space
+    assert steps.batch_size == (2, H)
+
+
+def test_leftover_temporary_files_are_removed_when_the_collection_resumes(tmp_path):
+    part = partial_path(tmp_path / "ds")
+    part.mkdir()
+    (part / ".progress.json.abcd1234.tmp").write_text("{")
+    (part / "keep.tmp").write_text("not ours")
+    _collect(tmp_path / "ds", num_episodes=2)
+    assert not (tmp_path / "ds" / ".progress.json.abcd1234.tmp").exists()
+    assert (tmp_path / "ds" / "keep.tmp").exists()
