@@ -285,7 +285,7 @@ def _check_encoder_dict(data: Any, source: str, *, max_params: int, max_activati
                                   f"got {ensemble!r}")
         members = ensemble.get("members")
         if not (limits.is_int(members) and 1 <= members <= limits.MAX_MEMBERS):
-            raise CheckpointError(f"encoder file {source}: 'ensemble' needs 'members' in [1, {limits.MAX_MEMBERS}] "
+            raise CheckpointError(f"{source}: 'ensemble' needs 'members' >= 1 and <= {limits.MAX_MEMBERS} "
                                   f"(trakdis.utils.limits.MAX_MEMBERS), got {members!r}")
         mirror = ensemble.get("state_mirror")
         if mirror is not None and not (isinstance(mirror, (list, tuple)) and len(mirror) == 2 and all(
