@@ -98,13 +98,12 @@ def save_config(cfg: Any, path: str | Path) -> Path:
 
 def load_config(cls: type[T], path: str | Path) -> T:
     """Read a configuration written by :func:`save_config`."""
+    from .limits import read_json
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"config file {path} does not exist")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"config file {path} is not valid JSON: {err}") from err
+    data = read_json(path, error=ValueError, what="config file")  # a regular file of bounded size
     try:
         return config_from_dict(cls, data)
     except dacite.DaciteError as err:
