@@ -268,7 +268,7 @@ def test_the_horizon_wins_over_env_kwargs(tmp_path):
     ({"dt_config.bogus": 1}, r"dt_config has unknown fields \['bogus'\]"), ({"actor": [1]}, "'actor' must be a dict"),
     ({"normalizer": {"loc": 1}}, "malformed policy file"), ({"rtg_scale": float("nan")}, "'rtg_scale' must be"),
     ({"task": "Nope"}, "'task' must be one of"), ({"encoder": {"kind": "encoder"}}, r"lacks \['encoder_kwargs'"),
-    ({"proprio_dims": "abc"}, "'proprio_dims' must be")])
+    ({"proprio_dims": "abc"}, "'proprio_dims' must be"), ({"kind": torch.zeros(2)}, "'kind' must be a name")])
 def test_malformed_policy_fields_name_the_file(tmp_path, change, match):
     path = tiny_policy(tmp_path / "policy.pt", **change)
     with pytest.raises(CheckpointError, match=rf"policy.pt.*{match}"):
@@ -279,6 +279,8 @@ def test_malformed_policy_fields_name_the_file(tmp_path, change, match):
     ({"encoder_kwargs": [1]}, "'encoder_kwargs' must be a dict"), ({"encoder_kwargs.channels": [2, 2]}, "4 conv"),
     ({"encoder_kwargs.head": 3}, "head must be"), ({"state_dict": {"x": torch.zeros(1)}}, "do not match"),
     ({"ensemble": {"members": 2, "state_mirror": [[0], [1.0]]}}, "state_mirror must be"),
+    ({"render_version": torch.zeros(2)}, "'render_version' must be an int"),
+    ({"task": torch.zeros(2)}, "'task' must be a name"),
     ({"encoder_kwargs.image_size": 4000, "encoder_kwargs.channels": [64] * 4, "encoder_kwargs.head": "keypoints"},
      "activations")])
 def test_malformed_encoder_fields_name_the_file(tmp_path, change, match):

@@ -130,6 +130,13 @@ def _check_keys(data: Mapping[str, Any], allowed: frozenset, source: str, what: 
                               f"{sorted(allowed - {'format'})}): refused rather than loaded unread")
 
 
+def _check_names(data: Mapping[str, Any], path: Path, keys: Sequence[str]) -> None:
+    """The entries ``keys`` of a file's dict, where present, strings (a tensor there would be compared as one)."""
+    for key in keys:
+        if data.get(key) is not None and not isinstance(data[key], str):
+            raise CheckpointError(f"{path}: {key!r} must be a name, got {type(data[key]).__name__}")
+
+
 def _check_extra(extra: Mapping[str, Any] | None, allowed: frozenset, what: str) -> dict[str, Any]:
     extra = dict(extra or {})
     unknown = sorted(k for k in extra if k not in allowed)
@@ -355,6 +362,8 @@ def check_render_version(data: Mapping[str, Any], task: str, source: str) -> Non
     it would read images unlike its training images. Files written before the version was recorded
     count as version 2 (the 35 mm picker markers, before the unpinned fold's wider camera)."""
     found, current = data.get("render_version", 2), render_version(task)
+    if not limits.is_int(found):
+        raise CheckpointError(f"{source}: 'render_version' must be an int, got {found!r}")
     if found != current:
         raise CheckpointError(f"{source}: its image network was trained on {task} images of rendering version "
                               f"{found}; this trakdis renders {task} at version {current} (docs/tasks.md), so it "
@@ -409,6 +418,7 @@ def load_encoder(path: str | Path, *, task: str | None = None, max_params: int =
         path = path / "encoder.pt"
     data = load_checkpoint(path, required=("kind",), max_bytes=_file_max_bytes(max_params),
                            limit_hint=_file_limit_hint(max_params))
+    _check_names(data, path, ("kind", "task"))
     if data["kind"] != "encoder":
         raise CheckpointError(f"{path} is a {data['kind']!r} file, not an encoder (train one with recipes/train_encoder.py)")
     missing = [k for k in ("encoder_kwargs", "state_dict") if k not in data]
@@ -715,6 +725,7 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
         path = path / "policy.pt"
     data = load_checkpoint(path, required=("kind", "task", "actor", "observation_key"),
                            max_bytes=_file_max_bytes(max_params), limit_hint=_file_limit_hint(max_params))
+    _check_names(data, path, ("kind", "task", "observation_key"))
     if data["kind"] not in ("teacher", "student", *IMAGE_POLICY_KINDS):
         raise CheckpointError(f"{path}: kind {data['kind']!r} is not a policy (expected one of "
                               f"teacher, student, {', '.join(IMAGE_POLICY_KINDS)})")
