@@ -266,7 +266,7 @@ def cap_workers(requested: int, work: int, *, what: str = "--num-envs", unit: st
     cores = available_cores()
     n = max(1, min(requested, max(work, 1), cores))
     if n < requested:
-        why = f"{work} {unit}" if n == max(work, 1) and work < cores else f"{cores} CPU cores"
+        why = f"{work} {unit}" if n == max(work, 1) else f"{cores} CPU cores"
         message = f"{what} {requested}: starting {n} (there are {why})"
         if warn is None:
             warnings.warn(message, stacklevel=2)
