@@ -154,7 +154,7 @@ def main(argv=None) -> dict:
     state.load()
     teacher = load_teacher(cfg.teacher, task=cfg.task, horizon=cfg.horizon, max_params=cfg.max_params) if with_rounds or cfg.select_episodes else None
     state.restore_rng()  # after the teacher's modules are built (their init draws), so the RNG streams continue exactly
-    mask_meta = {"mask_unseen_pickers": fill is not None, "out_of_view_fill": None if fill is None else fill.state_dict()}
+    mask_meta = {"mask_unseen_pickers": fill is not None, "out_of_view_fill": None if fill is None else fill.to_dict()}
     if teacher is not None:  # the student rounds' student acts with the teacher's (masked or not) states
         check_unseen_picker_mask(teacher, mask_meta, encoder_source=f"{run.dir} (this train_encoder.py run)")
 

@@ -349,11 +349,11 @@ def test_student_buffer_keys_proprioception_and_noise(distill, proprio):
     import torch
 
     from trakdis.data import student_buffer
-    from trakdis.transforms import StateNormalizer
+    from trakdis.transforms import state_normalizer
 
     data = _episodes(3, 4)
     data["state_estimate"] = data["state"] + 100.0  # an encoder 100 units off in both dims
-    normalizer = StateNormalizer(torch.zeros(2), torch.full((2,), 2.0), keys=("state", "state_estimate"))
+    normalizer = state_normalizer(torch.zeros(2), torch.full((2,), 2.0), keys=("state", "state_estimate"))
     buffer = student_buffer(5, 2, 4, 1.0, normalizer=normalizer, distill=distill, proprio_dims=proprio,
                             state_noise=0.5, seed=0)
     buffer.load_offline(data.exclude("pixels", "normalized_performance") if distill or proprio

@@ -159,13 +159,14 @@ def _tiny_teacher(horizon):
     from trakdis.modules import make_dt_actor
     from trakdis.modules import DTConfig
     from trakdis.policies import PolicyHandle
-    from trakdis.transforms import StateNormalizer
+    from torchrl.envs import ObservationNorm
 
     torch.manual_seed(0)
     spec = task_spec("ClothFold", horizon=horizon)
     dt_cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=3).for_task(spec.state_dim, spec.action_dim, horizon)
     actor = make_dt_actor(dt_cfg, observation_key="state")
-    normalizer = StateNormalizer(torch.zeros(spec.state_dim), torch.full((spec.state_dim,), 0.1))
+    normalizer = ObservationNorm(torch.zeros(spec.state_dim), torch.full((spec.state_dim,), 0.1), in_keys=["state"],
+                                 standard_normal=True)
     return PolicyHandle("teacher", "ClothFold", horizon, actor=actor.eval(), observation_key="state", target_return=-1.0,
                         normalizer=normalizer)
 

@@ -1,4 +1,5 @@
-"""OutOfViewFill: pickers out of the camera's view replaced by a sentinel (--mask-unseen-pickers)."""
+"""OutOfViewFill: pickers out of the camera's view replaced by a sentinel (--mask-unseen-pickers); a
+TorchRL Transform (envs, replay buffers, stored TensorDicts)."""
 import numpy as np
 import pytest
 import torch
@@ -50,13 +51,48 @@ def test_diagonal_tasks_mask_their_one_picker_and_tensordicts():
         fill.mask(torch.zeros(3, 12))
 
 
-def test_state_dict_round_trip_through_the_safe_loader(tmp_path):
-    fill = OutOfViewFill.for_task("ClothFold", image_size=64, keys=("state", "state_estimate"))
-    save_checkpoint(tmp_path / "f.pt", {"fill": fill.state_dict()})
-    again = OutOfViewFill.from_state_dict(load_checkpoint(tmp_path / "f.pt")["fill"])
-    assert again == fill and again.keys == ("state", "state_estimate")
+def test_dict_round_trip_through_the_safe_loader(tmp_path):
+    fill = OutOfViewFill.for_task("ClothFold", image_size=64, in_keys=("state", "state_estimate"))
+    save_checkpoint(tmp_path / "f.pt", {"fill": fill.to_dict()})
+    saved = load_checkpoint(tmp_path / "f.pt")["fill"]
+    assert set(saved) == {"camera_matrix", "image_size", "starts", "fill", "keys"}  # the format of earlier files
+    again = OutOfViewFill.from_dict(saved)
+    assert again.in_keys == again.out_keys == ["state", "state_estimate"] and again.starts == fill.starts
+    assert torch.equal(again.camera_matrix, fill.camera_matrix) and torch.equal(again.fill, fill.fill)
     x = _states(IN_VIEW[1], OUT_OF_VIEW[0], batch=(5,))
     assert torch.equal(again.mask(x), fill.mask(x))
+    earliest = {k: v for k, v in saved.items() if k != "keys"}
+    assert OutOfViewFill.from_dict(earliest).in_keys == ["state"]
+    other = OutOfViewFill(fill.camera_matrix, 64, fill.starts, in_keys=["state"], out_keys=["masked"])
+    assert OutOfViewFill.from_dict(other.to_dict()).out_keys == ["masked"]
+
+
+def test_in_an_env_and_a_replay_buffer():
+    """A TorchRL transform: on env resets and steps (specs checked: a bounded state spec widened to
+    hold the sentinel), as a replay buffer's sampling transform and into another key."""
+    from points_env import PointsEnv
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+    from torchrl.envs import TransformedEnv, check_env_specs
+
+    fill = OutOfViewFill(fixed_camera_matrix("ClothFold", 32), 32, [0, 3])
+    env = TransformedEnv(PointsEnv(), fill)
+    assert env.observation_spec["state"].space.high[5] == pytest.approx(0.4)  # 0.35 in the base env
+    check_env_specs(env)
+    torch.manual_seed(0)
+    raw = PointsEnv().rollout(5)
+    torch.manual_seed(0)
+    out = env.rollout(5)
+    for key in ("state", ("next", "state")):
+        assert torch.equal(out[key], fill.mask(raw[key])) and (out[key][..., 3:] == torch.tensor([0.0, 0.0, 0.4])).all()
+        assert env.observation_spec["state"].is_in(out[key])
+    assert torch.equal(out["state_estimate"], raw["state_estimate"])
+    buffer = ReplayBuffer(storage=LazyTensorStorage(5), batch_size=4, transform=fill.clone())  # one parent each
+    buffer.extend(raw.select("state").set("step", torch.arange(5)))
+    sample = buffer.sample()
+    assert torch.equal(sample["state"], out["state"][sample["step"]])
+    into = OutOfViewFill(fixed_camera_matrix("ClothFold", 32), 32, [0, 3], in_keys=["state"], out_keys=["masked"])
+    td = into(raw.select("state"))
+    assert torch.equal(td["masked"], out["state"]) and torch.equal(td["state"], raw["state"])
 
 
 def test_camera_matrix_without_gl_is_the_rendering_envs():

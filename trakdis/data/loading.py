@@ -13,8 +13,10 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 from tensordict import TensorDict
+from torchrl.envs.transforms import Compose, ObservationNorm
 
-from trakdis.transforms import OutOfViewFill, ProprioceptionOverride, StateNoise, StateNormalizer, chain
+from trakdis.transforms import (OutOfViewFill, ProprioceptionOverride, StateNoise, fit_state_normalizer,
+                                normalizer_from_state_dict, normalizer_state_dict)
 from trakdis.utils.limits import cap_workers, check_options
 from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.run import RunState
@@ -315,7 +317,7 @@ def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float,
                 seed: int | None = None, transform=None, early_windows: bool = False, replacement: str = "oldest",
                 relabel_return_to_go: bool = True):
     """A :class:`~trakdis.data.TrajectoryReplayBuffer` storing ``keys`` (+ ``"action"``, reward);
-    ``transform`` is applied to sampled windows (e.g. a :class:`~trakdis.transforms.StateNormalizer`)."""
+    ``transform`` is applied to sampled windows (e.g. a state normaliser, TorchRL's ``ObservationNorm``)."""
     keys = list(dict.fromkeys([*keys, "action"]))
     return TrajectoryReplayBuffer(capacity, context_len, max_len, keys=keys, rtg_scale=rtg_scale, seed=seed,
                                   transform=transform, early_windows=early_windows, replacement=replacement,
@@ -327,10 +329,10 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
                          state_noise: float = 0.0, fill: OutOfViewFill | None = None, early_windows: bool = False,
                          replacement: str = "oldest", collect_pixels: bool = False, log: Callable[..., None] = print,
                          progress: bool = True, target_key: str | None = None,
-                         extra_capacity: int = 0) -> tuple[TrajectoryReplayBuffer, StateNormalizer]:
+                         extra_capacity: int = 0) -> tuple[TrajectoryReplayBuffer, ObservationNorm | Compose]:
     """``(buffer, normalizer)``: a teacher's replay buffer of the expert dataset's states and actions,
-    its sampled windows standardised by ``normalizer`` (a :class:`~trakdis.transforms.StateNormalizer`
-    of ``"state"``, the acting policy's too): with ``state_noise`` > 0, Gaussian noise of that std
+    its sampled windows standardised by ``normalizer`` (TorchRL's ``ObservationNorm`` of ``"state"``,
+    :func:`~trakdis.transforms.state_normalizer`; the acting policy's too): with ``state_noise`` > 0, Gaussian noise of that std
     (seed ``seed + 7919``) on the raw states first; ``fill`` (``--mask-unseen-pickers``) carried by
     the normaliser, which masks the out-of-view pickers before standardising. The data stay raw.
 
@@ -349,25 +351,27 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
     if not state.resuming:
         trajectories, lengths = load_offline_data(cfg, phases=phases, task=task, horizon=horizon, seed=seed,
                                                   collect_pixels=collect_pixels, log=log, progress=progress)
-        state["normalizer"] = StateNormalizer.fit(trajectories["state"][valid_mask(lengths, trajectories.shape[1])],
-                                                  min_scale=min_scale, fill=fill).state_dict()
+        state["normalizer"] = normalizer_state_dict(fit_state_normalizer(
+            trajectories["state"][valid_mask(lengths, trajectories.shape[1])], min_scale=min_scale, fill=fill))
         state["best_return"] = float(trajectories["reward"].sum(dim=(-2, -1)).max())
         if state["buffer_capacity"] is None:
             state["buffer_capacity"] = int(trajectories.shape[0]) + int(extra_capacity)
         if target_key is not None:
             trajectories.set(target_key, trajectories.get("action").clone())
-    normalizer = StateNormalizer.from_state_dict(state["normalizer"])
+    normalizer = normalizer_from_state_dict(state["normalizer"])
     noise = StateNoise(state_noise, in_keys=["state"], seed=seed + 7919) if state_noise > 0 else None
     keys = ("state",) if target_key is None else ("state", target_key)
     buffer = make_buffer(state["buffer_capacity"], context_len, horizon, rtg_scale, keys=keys, seed=seed,
-                         transform=chain(noise, normalizer), early_windows=early_windows, replacement=replacement)
+                         transform=Compose(*(t for t in (noise, normalizer) if t is not None)),
+                         early_windows=early_windows, replacement=replacement)
     state.objects["buffer"] = buffer
     if not state.resuming:
         buffer.load_offline(trajectories, lengths)
     return buffer, normalizer
 
 
-def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: float, *, normalizer: StateNormalizer,
+def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: float, *,
+                   normalizer: ObservationNorm | Compose,
                    distill: bool = True, proprio_dims: Sequence[int] = (), state_noise: float = 0.0,
                    seed: int | None = None, early_windows: bool = False,
                    relabel_return_to_go: bool = True) -> TrajectoryReplayBuffer:
@@ -384,6 +388,7 @@ def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: flo
     # and noise added while collecting would be the same on every sample of a window.
     # The global RNG (no private generator): seeded by the run and restored on --resume with it.
     noise = StateNoise(state_noise, in_keys=["state_estimate"]) if state_noise > 0 else None
-    transform = chain(noise, ProprioceptionOverride(proprio_dims) if proprio_dims else None, normalizer)
+    override = ProprioceptionOverride(proprio_dims) if proprio_dims else None
+    transform = Compose(*(t for t in (noise, override, normalizer) if t is not None))
     return make_buffer(capacity, context_len, horizon, rtg_scale, keys=keys, seed=seed, transform=transform,
                        early_windows=early_windows, relabel_return_to_go=relabel_return_to_go)
