@@ -146,3 +146,25 @@ def test_old_resume_checkpoint_with_numpy_rng_state(tmp_path):
     np.random.seed(0)
     restore_state(ck, {})
     assert ck["step"] == 4 and np.array_equal(np.random.rand(2), expected)
+
+
+def test_rng_state_is_torchrl_global_rng_state_and_the_earlier_layout_still_restores(tmp_path):
+    """rng_state() is torchrl.checkpoint.GlobalRNGState's; a resume checkpoint of the layout before it
+    (keys "torch" / "cuda", NumPy's state as get_state(legacy=False)'s dict with a tensor key) restores
+    the same streams."""
+    from torchrl.checkpoint import GlobalRNGState
+
+    from trakdis.utils.checkpoint import rng_state, set_rng_state
+
+    random.seed(1), np.random.seed(2), torch.manual_seed(3)
+    assert set(rng_state()) == set(GlobalRNGState().state_dict()) and "torch_cpu" in rng_state()
+    np_state = np.random.get_state(legacy=False)
+    np_state["state"] = {**np_state["state"], "key": torch.from_numpy(np_state["state"]["key"].astype(np.int64))}
+    earlier = {"python": random.getstate(), "numpy": np_state, "torch": torch.get_rng_state()}
+    save_checkpoint(tmp_path / "earlier.pt", {"rng": earlier, "new": rng_state()})
+    expected = (random.random(), np.random.rand(3).tolist(), torch.rand(3).tolist())
+    loaded = load_checkpoint(tmp_path / "earlier.pt")
+    for key in ("rng", "new"):
+        random.seed(0), np.random.seed(0), torch.manual_seed(0)
+        set_rng_state(loaded[key])
+        assert (random.random(), np.random.rand(3).tolist(), torch.rand(3).tolist()) == expected, key

@@ -7,19 +7,27 @@ leaves either the previous complete checkpoint or the new complete one, never a 
 
 :func:`capture_state` / :func:`restore_state` turn a dict of objects with ``state_dict`` /
 ``load_state_dict`` (modules, optimizers, replay buffers, ...) plus the Python, NumPy and torch
-RNG states and plain counters into one checkpoint dict and back.
+RNG states (TorchRL's ``torchrl.checkpoint.GlobalRNGState``) and plain counters into one checkpoint
+dict and back.
 
 Every file is read with ``torch.load(weights_only=True)``: PyTorch's restricted unpickler builds
 tensors, containers and numbers only, so a crafted file cannot run code while it is loaded
 (docs/security.md). Checkpoints therefore hold only such types: :func:`rng_state` stores the NumPy
-RNG state as a plain dict with a tensor key. Resume checkpoints written before that (NumPy arrays
-inside) load with ``numpy_arrays=True``, which allow-lists NumPy's array types, nothing else.
+RNG state with a tensor key. Resume checkpoints written before that (NumPy arrays inside) load with
+``numpy_arrays=True``, which allow-lists NumPy's array types, nothing else.
 Before ``torch.load`` runs, the file must be a regular file and a zip archive that unpacks to at
 most :data:`~trakdis.utils.limits.MAX_EXPANSION` times its size (``max_bytes`` in all, when given).
 
 A write follows the umask (``0o666 & ~umask``, as ``open`` creates files); a write killed before its
 rename leaves a ``.<name>.<random>.tmp`` file, which :func:`remove_stale_temporaries` deletes when the
 run (or collection) owning the directory starts again.
+
+Why not ``torchrl.checkpoint.Checkpoint`` for the files (checked in TorchRL 0.14): it writes a directory,
+or a zip of one, with a JSON manifest and one payload per component, not the one ``torch.save`` dict
+that every policy, encoder and resume file written so far is; it publishes with ``os.replace`` but
+fsyncs neither the file nor the directory, names its leftovers ``.<name>.stage-<hex>`` directories, and
+loads an archive by extracting its members to a temporary directory without a bound on their size and
+without checking that the path is a regular file. Its ``GlobalRNGState`` is used for the RNG streams.
 """
 from __future__ import annotations
 
@@ -34,6 +42,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 import torch
+from torchrl.checkpoint import GlobalRNGState
 
 __all__ = [
     "atomic_write_bytes",
@@ -203,30 +212,29 @@ def _torch_load(path: Path, fh, *, map_location, numpy_arrays: bool) -> Any:
 
 # --------------------------------------------------------------------------- RNG
 def rng_state() -> dict[str, Any]:
-    """Python, NumPy and torch (CPU and, if initialised, CUDA) RNG states, as types that
-    ``torch.load(weights_only=True)`` reads (the NumPy state: a dict with a tensor key)."""
-    np_state = np.random.get_state(legacy=False)
-    np_state["state"] = {**np_state["state"], "key": torch.from_numpy(np_state["state"]["key"].astype(np.int64))}
-    state = {
-        "python": random.getstate(),
-        "numpy": np_state,
-        "torch": torch.get_rng_state(),
-    }
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
+    """Python, NumPy and torch (CPU and initialised accelerators) RNG states: TorchRL's
+    ``GlobalRNGState().state_dict()`` (keys ``"python"``, ``"numpy"``, ``"torch_cpu"``, ``"torch_cuda"``, ...),
+    types that ``torch.load(weights_only=True)`` reads (the NumPy key: a tensor)."""
+    return GlobalRNGState().state_dict()
 
 
 def set_rng_state(state: Mapping[str, Any]) -> None:
-    random.setstate(state["python"])
-    np_state = state["numpy"]
-    if isinstance(np_state, Mapping):  # rng_state()'s form; older checkpoints hold NumPy's tuple
-        key = np.asarray(np_state["state"]["key"], dtype=np.int64).astype(np.uint32)
-        np_state = {**np_state, "state": {**np_state["state"], "key": key}}
-    np.random.set_state(np_state)
-    torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+    """Restore :func:`rng_state`'s streams (``GlobalRNGState().load_state_dict``). Checkpoints written
+    before hold keys ``"torch"`` / ``"cuda"`` and NumPy's state as ``get_state(legacy=False)``'s dict
+    (a tensor key) or its legacy tuple (an ndarray key): they are converted first."""
+    state = dict(state)
+    if "torch_cpu" not in state:  # the earlier layout
+        np_state = state["numpy"]
+        if isinstance(np_state, Mapping):
+            np_state = (np_state["bit_generator"], torch.as_tensor(np_state["state"]["key"]), np_state["state"]["pos"],
+                        np_state["has_gauss"], np_state["gauss"])
+        state = {"python": state["python"], "numpy": np_state, "torch_cpu": state["torch"],
+                 **({"torch_cuda": state["cuda"]} if "cuda" in state else {})}
+    # GlobalRNGState.load_state_dict raises when the state holds CUDA's and CUDA is unavailable; a run
+    # started on a GPU resumes on a CPU-only machine (as it did before), its CUDA streams unused there.
+    if not torch.cuda.is_available():
+        state.pop("torch_cuda", None)
+    GlobalRNGState().load_state_dict(state)
 
 
 # --------------------------------------------------------------------------- resume
