@@ -20,7 +20,7 @@ from trakdis.envs import task_spec
 from trakdis.evaluation import EvalConfig, RunEnvs, run_episodes
 from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
-from trakdis.policies import load_teacher_and_encoder, weight_copied_student
+from trakdis.student import load_teacher_and_encoder, weight_copied_student
 from trakdis.training import SnapshotSelection, mixture_shares, train_rounds
 from trakdis.transforms import PickerOdometry
 from trakdis.utils.limits import MAX_PARAMS, check_options

@@ -21,8 +21,8 @@ from trakdis.envs.specs import TaskName
 from trakdis.modules import EncoderEnsemble, NormalizedEncoder, StateEncoder
 from trakdis.objectives import EncoderLoss
 from trakdis.optim import make_optimizer
-from trakdis.policies import (check_unseen_picker_mask, load_teacher, save_encoder, student_rollout_steps,
-                              weight_copy_race)
+from trakdis.policies import load_teacher, save_encoder
+from trakdis.student import check_unseen_picker_mask, student_rollout_steps, weight_copy_race
 from trakdis.transforms import OutOfViewFill
 from trakdis.training import eval_batches, train_epoch
 from trakdis.utils.limits import MAX_MEMBERS, MAX_PARAMS, check_option, check_options

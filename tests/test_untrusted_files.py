@@ -247,18 +247,18 @@ def test_the_horizon_wins_over_env_kwargs(tmp_path):
     handle = load_policy(path, horizon=2)
     seen = {}
 
-    import trakdis.policies as policies
+    import trakdis.policies.acting as acting
 
     def fake(task, **kw):
         seen.update(kw)
         return None
 
-    original = policies.make_acting_env
-    policies.make_acting_env = fake
+    original = acting.make_acting_env
+    acting.make_acting_env = fake
     try:
         handle.make_env()
     finally:
-        policies.make_acting_env = original
+        acting.make_acting_env = original
     assert seen["env_kwargs"] == {"action_repeat": 4, "horizon": 2}
 
 

@@ -1,9 +1,11 @@
 """trakdis: TorchRL/TensorDict components for transformer-based knowledge distillation in visual RL.
 
-Subpackages, lowest floor first: ``utils`` (generic helpers), ``envs`` (MuJoCo cloth tasks),
-``modules`` (Decision Transformer, encoder), ``transforms``, ``objectives`` (losses), ``data``
-(episode layout, datasets, replay buffer), ``evaluation``, ``policies`` (saved policies), ``optim``,
-``training`` (the recipes' update loop), ``method`` (the method's stages and their default options).
+Parts, lowest floor first (docs/design.md): ``utils`` (generic helpers), ``envs`` (MuJoCo cloth
+tasks), ``transforms``, ``modules`` (Decision Transformer, encoder), ``data`` (episode layout, datasets,
+replay buffer), ``objectives`` (losses), ``policies`` (policy and encoder files, a loaded policy and its
+acting env), ``optim``, ``evaluation``, ``training`` (the recipes' update loop), ``student`` (the student
+of a teacher and an encoder: its weight copy, rollouts and races), ``method`` (the method's stages and
+their default options).
 """
 
 import os as _os

@@ -16,10 +16,11 @@ import json
 import shlex
 from os import PathLike
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from trakdis.utils.stages import Stages
+from trakdis.evaluation import pick_candidate, read_final_scores
+from trakdis.utils.checkpoint import atomic_write_bytes
+from trakdis.utils.stages import Stages
 
 TEACHER_ARGS = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
 """recipes/online_dt.py: the offline teacher trained on states with 1 cm of Gaussian noise, so that its
@@ -153,9 +154,6 @@ def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, 
                 for i, n in enumerate(names)]
     if candidates == 1:
         return teachers[0], 0
-    from trakdis.evaluation import pick_candidate, read_final_scores
-    from trakdis.utils.checkpoint import atomic_write_bytes
-
     scores = []
     for n, teacher in zip(names, teachers):  # the same seed for every candidate: the same configurations
         select = stages.run("evaluate", f"{n}-select", "summary.csv",

@@ -25,6 +25,8 @@ from typing import Any, Iterable, Literal, Mapping, Sequence
 import torch
 from tensordict import TensorDictBase
 
+from trakdis.utils.limits import check_option
+
 __all__ = ["Lamb", "OptimConfig", "Updater", "make_constant_scheduler", "make_optimizer", "make_warmup_scheduler",
            "mean_metrics"]
 
@@ -192,8 +194,6 @@ class OptimConfig:
     """gradient-norm clip (0: off)"""
 
     def __post_init__(self):  # while parsing (tyro), before the run directory exists
-        from trakdis.utils.limits import check_option
-
         check_option("lr", self.lr, gt=0)
         check_option("weight_decay", self.weight_decay, ge=0)
         check_option("warmup_steps", self.warmup_steps, ge=0, integer=True)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from trakdis.evaluation import BackgroundEvaluation, EvalProtocol, RunEnvs, compare_scores, log_scores
+from trakdis.evaluation import BackgroundEvaluation, EvalProtocol, RunEnvs, compare_scores, log_scores, protocol
 from trakdis.policies import load_policy
 from trakdis.utils.phases import PhaseTimer
 
@@ -170,12 +170,10 @@ def test_evaluate_now_or_in_the_background_and_finish_the_pending_latest_first(m
 
 
 def test_expert_scores_known_now_and_run_envs_closing_and_cancelling(monkeypatch):
-    import trakdis.envs
-
     finished, got, closed = [], [], []
     evals = fake_protocol(monkeypatch, finished)
     monkeypatch.setattr(evals, "expert_baseline", lambda run, env, phases, **kw: np.array([0.75, 0.25]))
-    monkeypatch.setattr(trakdis.envs, "close_env", lambda env: closed.append(env))
+    monkeypatch.setattr(protocol, "close_env", lambda env: closed.append(env))
     evals.expert_scores(FakeRun(), None, PhaseTimer(), cache_root="x", on_scores=lambda s: got.append(np.mean(s)))
     assert got == [0.5]
     phases, a, b = PhaseTimer(), object(), object()
@@ -193,10 +191,8 @@ def test_expert_scores_known_now_and_run_envs_closing_and_cancelling(monkeypatch
 
 
 def test_run_envs_without_a_phase_timer_closes_its_envs_in_order(monkeypatch):
-    import trakdis.envs
-
     closed = []
-    monkeypatch.setattr(trakdis.envs, "close_env", lambda env: closed.append(env))
+    monkeypatch.setattr(protocol, "close_env", lambda env: closed.append(env))
     a, b, c = object(), object(), object()
     with RunEnvs(None, a, None, b, c) as envs:  # a run that times no phases (distill.py)
         envs.start_workers()

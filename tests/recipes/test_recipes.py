@@ -13,6 +13,7 @@ import torch
 from trakdis.utils.checkpoint import load_checkpoint
 from trakdis.modules import EncoderEnsemble, find_dt_actor
 from trakdis.policies import load_encoder, load_policy
+from trakdis.transforms import normalizer_parts
 
 from .conftest import (DATA, HORIZON, RECIPES, _env, distill_args, kill_when, load_recipe, online_dt_args,
                        run_recipe, start_recipe)
@@ -555,7 +556,7 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     assert "evaluate/pipe-eval-teacher" in out.stdout  # in the background, or here once withdrawn from its queue
     assert "of the training images' picker positions are out of view" in out.stdout
     for run_dir in ("online_dt/pipe-teacher", "distill/pipe-student"):
-        assert load_policy(workdir / "runs" / run_dir).normalizer.fill is not None, run_dir
+        assert normalizer_parts(load_policy(workdir / "runs" / run_dir).normalizer)[1] is not None, run_dir
     ck = load_checkpoint(workdir / "runs" / "train_encoder" / "pipe-encoder" / "encoder.pt")
     assert ck["mask_unseen_pickers"] is True and ck["out_of_view_fill"]["starts"] == [12, 15]
     table = pd.read_csv(workdir / "runs" / "pipeline" / "pipe" / "summary.csv")

@@ -37,11 +37,17 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import Collector
+from tqdm.auto import tqdm
 
+from trakdis.envs import ExpertPolicy, expert_version, make_env, render_version
+from trakdis.envs.batched import SleepWaitParallelEnv
+from trakdis.envs.specs import TASKS, task_spec
 from trakdis.utils import limits
 from trakdis.utils.checkpoint import atomic_write_bytes, remove_stale_temporaries
 
@@ -135,14 +141,10 @@ class _ReseedablePolicy(TensorDictModuleBase):
 
 
 def _default_env_fn(task, from_pixels, image_size, split, horizon):
-    from trakdis.envs import make_env
-
     return make_env(task, from_pixels=from_pixels, image_size=image_size, split=split, horizon=horizon)
 
 
 def _default_policy_fn(task, noise, aim_error, close_radius, seed):
-    from trakdis.envs import ExpertPolicy
-
     return ExpertPolicy(task, noise=noise, seed=seed, aim_error=aim_error, close_radius=close_radius)  # None: the task's
 
 
@@ -236,8 +238,6 @@ def collect_expert_dataset(
         policy_fn(None)  # the expert's own checks (noise, aim_error, close_radius) reject bad values before any disk write
     if path.exists() and not overwrite:
         raise FileExistsError(f"collect_expert_dataset: {path} already exists (pass overwrite=True to replace it)")
-    from trakdis.envs import expert_version, render_version
-
     config = {
         "task": task,
         "num_episodes": int(num_episodes),
@@ -274,11 +274,6 @@ def collect_expert_dataset(
 def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, num_workers, image_size, from_pixels,
                   seed, split, horizon, progress, callback, make_env_fn, policy_fn, mp_start_method) -> Path:
     """The body of :func:`collect_expert_dataset`, run while it holds the lock on ``tmp``."""
-    import mujoco
-    from torchrl.collectors import Collector
-
-    from trakdis.envs.batched import SleepWaitParallelEnv
-
     progress_file = tmp / "progress.json"
     chunks_done = 0
     remove_stale_temporaries(tmp)  # of a collection killed while it replaced progress.json or meta.json
@@ -306,8 +301,6 @@ def _collect_into(path: Path, tmp: Path, config: dict, *, task, num_episodes, nu
     num_chunks = -(-num_episodes // W)
     env_fn = make_env_fn or functools.partial(_default_env_fn, task, from_pixels, image_size, split, horizon)
     keys = [k for k, _ in STEP_KEYS if k != "pixels" or from_pixels]
-
-    from tqdm.auto import tqdm
 
     bar = tqdm(
         total=num_episodes, initial=min(chunks_done * W, num_episodes), disable=not _progress_enabled(progress),
@@ -456,8 +449,6 @@ _FIXED_LAYOUT = {
 
 
 def _task_names() -> tuple[str, ...]:
-    from trakdis.envs.specs import TASKS
-
     return tuple(TASKS)
 
 
@@ -487,8 +478,6 @@ def _check_layout(meta: dict, meta_file: Path) -> None:
             raise _meta_error(meta_file, "keys.pixels.shape", f"must be [size, size, 3] images"
                               f"{f' of the image_size {size} it records' if limits.is_int(size) else ''}, got {shape!r}")
     if ours:
-        from trakdis.envs.specs import task_spec
-
         spec = task_spec(meta["task"])
         for name, width in (("state", spec.state_dim), ("action", spec.action_dim)):
             if name in keys and keys[name]["shape"] != [width]:

@@ -23,6 +23,9 @@ from typing import Any, Literal, Mapping
 import torch
 from tensordict import TensorDictBase
 
+from trakdis.envs.experts import expert_action, expert_version
+from trakdis.envs.specs import task_spec
+
 from .dataset import DatasetError, collected_close_radius, collected_expert_version
 from .layout import valid_mask
 
@@ -40,9 +43,6 @@ def expert_labels(steps: TensorDictBase, meta: Mapping[str, Any], *, path: str |
 
     Raises :class:`~trakdis.data.DatasetError` (naming ``path``) for a dataset that this expert did not
     collect: a custom policy, or another version of the scripted expert (its labels would differ)."""
-    from trakdis.envs.experts import expert_action, expert_version
-    from trakdis.envs.specs import task_spec
-
     if meta.get("config", {}).get("custom_policy", False):
         raise DatasetError(f"{path}: collected by a custom policy, so the scripted expert cannot relabel its actions "
                            "(use --data.action-labels executed)")
@@ -73,8 +73,6 @@ def expert_targets(episode: TensorDictBase, task: str, *, out_key: str = "expert
     the executed ``"action"``, which it leaves as it is (a Decision Transformer reads its own executed
     actions in its context, and learns ``out_key``); returns ``episode``. ``close_radius``: the expert's
     (``expert_action``'s; None: the task's), as the demonstrations beside these rollouts were collected."""
-    from trakdis.envs.experts import expert_action
-
     missing = [k for k in ("state", "step_count", "action") if k not in episode.keys()]
     if missing:
         raise KeyError(f"expert_targets: the episode has no {missing}; keys: {sorted(map(str, episode.keys()))}")

@@ -15,9 +15,10 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.transforms import Compose, ObservationNorm
 
+from trakdis.envs import expert_version, render_version
 from trakdis.transforms import (OutOfViewFill, ProprioceptionOverride, StateNoise, fit_state_normalizer,
                                 normalizer_from_state_dict, normalizer_state_dict)
-from trakdis.utils.limits import cap_workers, check_options
+from trakdis.utils.limits import cap_workers, check_options, read_json
 from trakdis.utils.phases import PhaseTimer, available_workers
 from trakdis.utils.run import RunState
 
@@ -97,8 +98,6 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
     An existing dataset must hold episodes of ``task`` with ``horizon`` steps (its ``meta.json``):
     anything else is a :class:`~trakdis.data.DatasetError` naming the path and both values. A default
     dataset collected with another seed (by an earlier trakdis) is used, and said so."""
-    from trakdis.envs import expert_version, render_version
-
     if horizon < 1:
         raise ValueError(f"--horizon {horizon}: the episode length must be >= 1")
     seed = collection_seed(cfg, seed=seed, seed_offset=seed_offset)
@@ -153,8 +152,6 @@ def ensure_dataset(cfg: DataConfig, *, task: str, horizon: int, seed: int, pixel
 
 def _episodes_done(partial: Path) -> int:
     """Episodes an interrupted collection already wrote (0 if its progress file is unreadable)."""
-    from trakdis.utils.limits import read_json
-
     try:
         return int(read_json(partial / "progress.json", within=partial)["episodes_done"])
     except (OSError, ValueError, KeyError, TypeError):

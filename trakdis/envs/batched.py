@@ -5,10 +5,16 @@ TorchRL's side effect on the thread count, and starting their worker processes i
 from __future__ import annotations
 
 import functools
+import sys
+import threading
 import time
+import warnings
 from typing import Any, Mapping
 
-from torchrl.envs import ParallelEnv
+import torch
+from torchrl.envs import ParallelEnv, SerialEnv
+
+from trakdis.envs.torchrl_env import make_env
 
 __all__ = ["SleepWaitParallelEnv", "close_env", "make_batched_env", "start_in_background"]
 
@@ -73,11 +79,6 @@ def close_env(env) -> None:
     propagating (``close_env`` in a ``finally``), its failure is only warned about, so the original
     exception, Ctrl-C included, is the one raised.
     """
-    import sys
-    import warnings
-
-    import torch
-
     if getattr(env, "is_closed", False):
         return
     in_flight = sys.exc_info()[1]
@@ -104,15 +105,11 @@ class start_in_background:
     re-raises a failure; call it before using or closing the envs."""
 
     def __init__(self, *envs):
-        import threading
-
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._start, args=(envs,), name="trakdis-env-start", daemon=True)
         self._thread.start()
 
     def _start(self, envs) -> None:
-        from torchrl.envs import ParallelEnv
-
         try:
             for env in envs:
                 base = getattr(env, "base_env", env)
@@ -138,10 +135,6 @@ def make_batched_env(task: str, *, num_envs: int = 1, parallel: bool = False, se
                      split: str = "train", from_pixels: bool = False, image_size: int = 32,
                      env_kwargs: Mapping[str, Any] | None = None):
     """``SerialEnv``/``ParallelEnv`` of ``num_envs`` :func:`trakdis.envs.make_env` instances (batch ``[num_envs]``)."""
-    from torchrl.envs import SerialEnv
-
-    from trakdis.envs.torchrl_env import make_env
-
     if num_envs < 1:
         raise ValueError(f"num_envs must be >= 1, got {num_envs}")
     factory = functools.partial(make_env, task, from_pixels=from_pixels, image_size=image_size, split=split,

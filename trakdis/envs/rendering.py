@@ -49,7 +49,7 @@ def adopt_configured_backend() -> None:
     wanted = os.environ.get("MUJOCO_GL", "").lower().strip()
     if getattr(gl_context, "_MUJOCO_GL", None) != "" or wanted not in ("egl", "osmesa"):
         return
-    if wanted == "egl":
+    if wanted == "egl":  # each backend's module needs its own system library: only the chosen one is imported
         from mujoco.egl import GLContext
     else:
         from mujoco.osmesa import GLContext
@@ -101,7 +101,7 @@ class FrameRenderer:
 
     def bind(self, model) -> None:
         """Create (or re-create) the GL context for ``model``."""
-        import mujoco
+        import mujoco  # here, not at the top: mujoco fixes its GL backend at import, after configure_gl()
 
         self.close()
         try:
@@ -135,7 +135,7 @@ class FrameRenderer:
 
         Pixel coordinates: u to the right, v downwards, pixel centres at integer + 0.5.
         """
-        import mujoco
+        import mujoco  # here, not at the top: mujoco fixes its GL backend at import, after configure_gl()
 
         model = self._model
         cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "main")

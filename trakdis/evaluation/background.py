@@ -24,6 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+
+from trakdis.envs import close_env
+from trakdis.policies import load_policy
+
+from .episodes import EpisodeResults, run_episodes
 
 __all__ = ["BackgroundEvaluation"]
 
@@ -39,13 +45,7 @@ def _worker(conn, spec: str, kwargs: dict[str, Any]) -> None:
     try:
         if kwargs["nice"]:
             os.nice(kwargs["nice"])
-        import torch
-
         torch.set_num_threads(1)
-        from trakdis.envs import close_env
-        from trakdis.evaluation.episodes import run_episodes
-        from trakdis.policies import load_policy
-
         handle = load_policy(spec, task=kwargs["task"], horizon=kwargs["horizon"])
         env = handle.make_env(num_envs=kwargs["num_envs"], split=kwargs["split"], parallel=False)
         try:
@@ -112,8 +112,6 @@ class BackgroundEvaluation:
 
     def result(self):
         """The :class:`~trakdis.evaluation.EpisodeResults` (waits for the worker)."""
-        from .episodes import EpisodeResults
-
         if self._results is None:
             try:
                 msg = self._conn.recv()

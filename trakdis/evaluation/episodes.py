@@ -24,11 +24,14 @@ import numpy as np
 import pandas as pd
 import torch
 from tensordict import TensorDictBase
+from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, TransformedEnv
+from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.progress import progress
+from trakdis.utils.video import side_by_side
 
 __all__ = ["COLLECTORS", "EpisodeResults", "EpisodeStream", "episode_frames", "episode_score", "markdown_table",
            "paired_difference", "pick_candidate", "race_survivors", "read_final_scores", "run_episodes",
@@ -181,8 +184,6 @@ def worker_env_fns(env) -> list[Callable[[], EnvBase]]:
     optionally inside a ``TransformedEnv``): each builds that sub-environment with a copy of
     ``env``'s transforms on top. A sequence of constructors is returned as a list. ``env`` itself is
     not started."""
-    from torchrl.envs.batched_envs import BatchedEnvBase
-
     # own code: TorchRL 0.14 has no helper for this; a batched env keeps one create_env_fn and
     # create_env_kwargs per worker (torchrl/envs/batched_envs.py), which MultiSyncCollector takes as is
     if not isinstance(env, EnvBase) and isinstance(env, Sequence):
@@ -304,7 +305,7 @@ class EpisodeStream:
     any episode, do something else (play another stream), and continue: the episodes after the first
     ``k`` are those that one :func:`run_episodes` call for more episodes would have played (the same
     resets, in the same order). Used to race several policies on the same configurations, each in its
-    own stream, dropping the clearly worse ones early (:func:`trakdis.policies.weight_copy_race`).
+    own stream, dropping the clearly worse ones early (:func:`trakdis.student.weight_copy_race`).
 
     ``env``, ``policy``, ``max_steps``, ``deterministic``, ``seed`` and ``collector``: as in
     :func:`run_episodes`. :meth:`close` (or leaving a ``with`` block) shuts the collector down; with
@@ -313,8 +314,6 @@ class EpisodeStream:
 
     def __init__(self, env, policy: Callable[[TensorDictBase], TensorDictBase], *, max_steps: int,
                  deterministic: bool = True, seed: int | None = None, collector: str = "sync"):
-        from torchrl.collectors import Collector, MultiSyncCollector
-
         if collector not in COLLECTORS:
             raise ValueError(f"collector must be one of {COLLECTORS}, got {collector!r}")
         self.exploration_type = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
@@ -436,8 +435,6 @@ def episode_frames(episode: TensorDictBase, *, large_key: str = "pixels", small_
                    label: str = "") -> list[np.ndarray]:
     """Side-by-side frames (large render | agent view upscaled) of one episode ``[T]`` TensorDict,
     captioned with the step and the normalized performance after it, plus the final frame."""
-    from trakdis.utils.video import side_by_side
-
     for key in (large_key, small_key):
         if key not in episode.keys():
             raise KeyError(f"episode_frames: the episode has no {key!r} entry; keys are {sorted(map(str, episode.keys()))}")

@@ -27,9 +27,11 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import mujoco
 import numpy as np
 
 from trakdis.data import DatasetError
+from trakdis.envs import expert_version
 from trakdis.utils.checkpoint import atomic_write_bytes
 
 __all__ = ["ExpertScoreError", "expert_score_key", "expert_score_path", "read_expert_scores", "write_expert_scores"]
@@ -48,10 +50,6 @@ def expert_score_key(*, task: str, split: str, horizon: int, episodes: int, seed
 
     ``num_envs`` is part of it: ``run_episodes`` draws episode ``i``'s configuration from the
     random stream of environment ``i % num_envs``, so another count plays other configurations."""
-    import mujoco
-
-    from trakdis.envs import expert_version
-
     return {"task": str(task), "split": str(split), "horizon": int(horizon), "episodes": int(episodes),
             "seed": int(seed), "num_envs": int(num_envs), "expert_noise": float(expert_noise),
             "expert_version": int(expert_version(task)), "mujoco": str(mujoco.__version__)}

@@ -33,8 +33,12 @@ from pathlib import Path
 from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
+import torch
 from torch import nn
 
+from trakdis.envs import close_env, start_in_background
+from trakdis.policies import load_policy
+from trakdis.utils.limits import cap_workers, check_option
 from trakdis.utils.phases import PhaseTimer, available_workers
 
 from .background import BackgroundEvaluation
@@ -125,8 +129,6 @@ class EvalProtocol:
             keep_mode.train(was_training)
         extra, note = {}, ""
         if errors:
-            import torch
-
             err = torch.cat([(ep["state_estimate"] - ep["state"]).abs() for ep in res.episodes])
             extra = {f"{prefix}/encoder_{k}": v for k, v in state_error_cm(err).items()}
             note = (f"; encoder error corners {extra[f'{prefix}/encoder_corners_cm']:.2f} cm, pickers "
@@ -141,8 +143,6 @@ class EvalProtocol:
         """:meth:`run` on a fresh env that runs a frozen copy of ``handle.encoder`` if it has one (an
         image policy in training: the env's ``EncoderTransform`` freezes what it is given, and a
         ``ParallelEnv`` would pickle it), closed afterwards."""
-        from trakdis.envs import close_env
-
         encoder = None if handle.encoder is None else copy.deepcopy(handle.encoder).eval()
         snapshot = dataclasses.replace(handle, encoder=encoder)
         env = snapshot.make_env(num_envs=self.num_envs, split="eval", parallel=parallel)
@@ -265,8 +265,6 @@ class EvalProtocol:
             job = self.in_background("expert", phases, episodes=episodes)
             job.cache_path, job.cache_key = path, key
             return job
-        from trakdis.policies import load_policy
-
         expert = load_policy("expert", task=self.task, horizon=self.horizon)
         with phases.phase("expert evaluation", episodes=episodes, workers=self.num_envs):
             res = self.run(run, expert, env, step=0, tag="scripted expert", prefix="eval_expert", episodes=episodes)
@@ -297,8 +295,6 @@ class EvalConfig:
     """one TorchRL Collector over the batched env, or a MultiSyncCollector of --num-envs processes"""
 
     def __post_init__(self):  # while parsing (tyro), before the run directory exists
-        from trakdis.utils.limits import cap_workers, check_option
-
         check_option("eval_episodes", self.eval_episodes, ge=0, integer=True)
         check_option("eval_every", self.eval_every, ge=0, integer=True)
         check_option("num_envs", self.num_envs, ge=1, integer=True)
@@ -342,8 +338,6 @@ class RunEnvs:
     def start_workers(self, start: bool = True) -> None:
         """Start the envs' workers in a thread (``start=False``: none, e.g. envs that only describe
         a collector's; :meth:`join_workers` is still timed)."""
-        from trakdis.envs import start_in_background
-
         self._starting = start_in_background(*(self.envs if start else ()))
 
     def join_workers(self) -> None:
@@ -353,8 +347,6 @@ class RunEnvs:
 
     def close(self, env: Any) -> None:
         """Close ``env`` now (if owned)."""
-        from trakdis.envs import close_env
-
         if any(owned is env for owned in self.envs):
             self.envs = [owned for owned in self.envs if owned is not env]
             close_env(env)
@@ -363,8 +355,6 @@ class RunEnvs:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        from trakdis.envs import close_env
-
         if self.evals is not None:
             self.evals.cancel_pending()
         with self._phase("env worker shutdown"):

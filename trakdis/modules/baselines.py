@@ -32,6 +32,7 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from trakdis.modules.encoder import StateEncoder, to_float_chw
+from trakdis.transforms.augment import random_shift
 
 __all__ = ["BCConfig", "BCHead", "ImageTrunk", "ImageTrunkConfig", "make_bc_actor", "with_image_trunk"]
 
@@ -80,8 +81,6 @@ class ImageTrunk(nn.Module):
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         x = to_float_chw(pixels)
         if self.training and self.pad > 0:
-            from trakdis.transforms.augment import random_shift
-
             lead = x.shape[:-3]
             x = random_shift(x.reshape(-1, *x.shape[-3:]), self.pad).reshape(*lead, *x.shape[-3:])
         return self.encoder(x)

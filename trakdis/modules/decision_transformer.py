@@ -21,6 +21,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
+from trakdis.envs.specs import task_spec
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 
 __all__ = ["DTConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor", "recipe_hidden_action_dims"]
@@ -152,8 +153,6 @@ HIDDEN_GRASP_TASKS = ("ClothFold",)
 def recipe_hidden_action_dims(task: str) -> tuple[int, ...]:
     """The recipes' default ``DTConfig.hidden_action_dims`` for ``task``: its grasp commands
     (``TaskSpec.grasp_dims``) if it is in :data:`HIDDEN_GRASP_TASKS`, else none."""
-    from trakdis.envs.specs import task_spec
-
     return task_spec(task).grasp_dims if task in HIDDEN_GRASP_TASKS else ()
 
 

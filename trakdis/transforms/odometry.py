@@ -27,6 +27,7 @@ accumulates rewards only.
 """
 from __future__ import annotations
 
+import inspect
 from typing import Mapping, Sequence
 
 import torch
@@ -35,6 +36,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from trakdis.envs import ClothEnv, task_spec
+from trakdis.envs.cloth_env import WORKSPACE_HIGH, WORKSPACE_LOW
 from trakdis.transforms.visibility import OutOfViewFill, fixed_camera_matrix
 
 __all__ = ["PickerOdometry"]
@@ -90,11 +93,6 @@ class PickerOdometry(Transform):
         """The filter of ``task``'s pickers, with the motion of an env made with ``env_kwargs``
         (``move_per_substep``, ``action_repeat``; the env's defaults otherwise) and the task's fixed
         camera at ``image_size``."""
-        import inspect
-
-        from trakdis.envs import ClothEnv, task_spec
-        from trakdis.envs.cloth_env import WORKSPACE_HIGH, WORKSPACE_LOW
-
         spec, kwargs = task_spec(task), dict(env_kwargs or {})
         defaults = inspect.signature(ClothEnv.__init__).parameters
         motion = {k: kwargs.get(k, defaults[k].default) for k in ("move_per_substep", "action_repeat")}

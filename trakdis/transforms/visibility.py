@@ -23,6 +23,10 @@ from torchrl.data import Bounded, TensorSpec
 from torchrl.envs.transforms import ObservationTransform
 from torchrl.envs.transforms.transforms import _apply_to_composite
 
+from trakdis.envs.model import CAMERA_POS, CAMERA_XYAXES, camera_fovy
+from trakdis.envs.rendering import camera_projection
+from trakdis.envs.specs import task_spec
+
 __all__ = ["DEFAULT_FILL", "OutOfViewFill", "fixed_camera_matrix"]
 
 DEFAULT_FILL = (0.0, 0.0, 0.4)
@@ -34,9 +38,6 @@ def fixed_camera_matrix(task: str, image_size: int) -> np.ndarray:
     integer + 0.5) of ``task``'s ``"main"`` camera in an ``image_size`` image: the same matrix as
     ``ClothEnv(from_pixels=True).camera_matrix()`` (every task has this camera, with its own field of
     view), from the constants of :mod:`trakdis.envs.model` alone (no simulator, no OpenGL context)."""
-    from trakdis.envs.model import CAMERA_POS, CAMERA_XYAXES, camera_fovy
-    from trakdis.envs.rendering import camera_projection
-
     x_axis = np.asarray(CAMERA_XYAXES[:3], dtype=np.float64)
     y_axis = np.asarray(CAMERA_XYAXES[3:], dtype=np.float64)
     # MuJoCo's xyaxes: x normalised, y made orthogonal to x and normalised, z = x cross y
@@ -83,8 +84,6 @@ class OutOfViewFill(ObservationTransform):
                  in_keys: Sequence[NestedKey] | None = None) -> "OutOfViewFill":
         """The mask of ``task``'s pickers (its state group ``pickers``: one for the diagonal folds, two
         for ClothFold) in its fixed camera's ``image_size`` image (:func:`fixed_camera_matrix`)."""
-        from trakdis.envs.specs import task_spec
-
         pickers = task_spec(task).state_groups["pickers"]
         return cls(fixed_camera_matrix(task, image_size), image_size, range(pickers.start, pickers.stop, 3), fill, in_keys)
 

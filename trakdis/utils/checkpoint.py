@@ -44,6 +44,8 @@ import numpy as np
 import torch
 from torchrl.checkpoint import GlobalRNGState
 
+from .limits import check_zip_archive, open_regular_file
+
 __all__ = [
     "atomic_write_bytes",
     "save_checkpoint",
@@ -178,8 +180,6 @@ def load_checkpoint(
     checkpoint, too large, unreadable, holds types the safe loader refuses, is not a trakdis
     checkpoint, or lacks one of the ``required`` keys.
     """
-    from .limits import check_zip_archive, open_regular_file
-
     path = Path(path)
     with open_regular_file(path, error=CheckpointError, what="checkpoint") as fh:
         check_zip_archive(path, max_bytes=max_bytes, error=CheckpointError, hint=limit_hint)

@@ -27,6 +27,9 @@ from typing import Any, Mapping, Sequence, TypeVar
 import dacite
 import tyro
 
+from .checkpoint import atomic_write_bytes
+from .limits import read_json
+
 __all__ = ["parse_config", "apply_overrides", "config_to_dict", "config_from_dict", "save_config", "load_config"]
 
 T = TypeVar("T")
@@ -89,8 +92,6 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
 
 def save_config(cfg: Any, path: str | Path) -> Path:
     """Write the resolved configuration as indented JSON (atomically)."""
-    from .checkpoint import atomic_write_bytes
-
     path = Path(path)
     atomic_write_bytes(path, (json.dumps(config_to_dict(cfg), indent=2) + "\n").encode())
     return path
@@ -98,8 +99,6 @@ def save_config(cfg: Any, path: str | Path) -> Path:
 
 def load_config(cls: type[T], path: str | Path) -> T:
     """Read a configuration written by :func:`save_config`."""
-    from .limits import read_json
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"config file {path} does not exist")

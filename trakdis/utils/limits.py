@@ -30,6 +30,8 @@ import zipfile
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+import numpy as np
+
 __all__ = [
     "MAX_PARAMS", "MAX_ACTIVATION_BYTES", "MAX_LAYERS", "MAX_MEMBERS", "MAX_HORIZON", "MAX_JSON_BYTES",
     "MAX_EXPANSION", "MAX_SEED", "ENV_KWARG_RANGES", "MAX_SIM_SUBSTEPS",
@@ -79,15 +81,11 @@ substeps`` at most :data:`MAX_SIM_SUBSTEPS`. The episode length is the file's ``
 
 def is_int(value: Any) -> bool:
     """An int that is not a bool (``True`` is an ``int`` to Python, never a count here)."""
-    import numpy as np
-
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
 def is_number(value: Any) -> bool:
     """A finite real number that is not a bool."""
-    import numpy as np
-
     return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
             and math.isfinite(value))
 

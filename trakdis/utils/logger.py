@@ -28,6 +28,7 @@ from tensordict import TensorDictBase
 from torchrl.record.loggers import Logger, get_logger
 
 from .checkpoint import atomic_write_bytes
+from .limits import check_regular_file
 
 __all__ = ["check_run_name", "make_run_dir", "latest_run_dir", "latest_run_file", "WideCSVLogger",
            "LOGGER_PACKAGES", "check_logger_backend", "make_torchrl_logger"]
@@ -162,8 +163,6 @@ class WideCSVLogger(Logger):
         self._columns: list[str] = ["step"]
         self._pending = 0
         if resume and self.path.exists():
-            from .limits import check_regular_file
-
             check_regular_file(self.path, what="log")
             try:
                 frame = pd.read_csv(self.path)

@@ -48,6 +48,7 @@ from .checkpoint import (CheckpointError, load_checkpoint, remove_stale_temporar
 from .config import load_config, parse_config, save_config
 from .limits import MAX_SEED, check_option
 from .logger import WideCSVLogger, check_logger_backend, make_run_dir, make_torchrl_logger
+from .phases import PhaseTimer
 from .plot import plot_csv
 
 __all__ = ["RunConfig", "Run", "RunState", "seed_everything"]
@@ -338,8 +339,6 @@ class RunState(dict):
                 self.update(self.checkpoint[counters_key])
         self.phases_key, self.phases = phases_key, None
         if phases_key is not None:
-            from .phases import PhaseTimer
-
             self.phases = PhaseTimer(self.setdefault(phases_key, {}))
 
     @property

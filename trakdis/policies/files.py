@@ -1,4 +1,4 @@
-"""Saved policies: policy files, encoder files, and a loaded policy's acting environment.
+"""Policy and encoder files: what they hold, their checks, writing them and reading them back.
 
 A *policy file* (``policy.pt``, written by ``online_dt.py`` and ``distill.py``) is a checkpoint
 dict holding everything needed to act without the recipe's config:
@@ -6,105 +6,46 @@ dict holding everything needed to act without the recipe's config:
 ``kind`` (``"teacher"`` / ``"student"``), ``task``, ``horizon``, ``dt_config`` (a
 :class:`~trakdis.modules.DTConfig` dict), ``observation_key``, ``actor`` (state dict),
 ``target_return`` and ``rtg_scale`` (acting return-to-go), ``env_kwargs``, ``normalizer`` (a
-:class:`~trakdis.transforms.StateNormalizer` state, or None) and, for a student, ``encoder`` (an
+state normaliser's :func:`~trakdis.transforms.normalizer_state_dict`, or None) and, for a student, ``encoder`` (an
 encoder file's dict, see :func:`save_encoder`). The image baselines' files (kinds ``bc_image`` /
 ``dt_image``, :func:`save_image_policy`) hold their CNN trunk and head instead.
 
-:func:`load_policy` turns a policy file, or the string ``"expert"`` (the scripted expert), into
-a :class:`PolicyHandle` that builds its acting environment (:func:`make_acting_env`: batched over
-``num_envs``, with the return-to-go countdown, the frozen encoder and optional state noise) and
-its acting module.
+A file is untrusted input (docs/security.md): :func:`read_policy_file` and :func:`load_encoder`
+check its entries, their types and ranges and the sizes of the models it describes before
+anything is built. :func:`~trakdis.policies.load_policy` turns what :func:`read_policy_file`
+reads into a :class:`~trakdis.policies.PolicyHandle`.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-import numpy as np
 import torch
-from tensordict import TensorDict
 from torch import nn
+from torchrl.envs.transforms import Compose, ObservationNorm
 
-from trakdis.envs.batched import make_batched_env
-from trakdis.envs.model import render_version
-from trakdis.modules.encoder import EncoderEnsemble
-from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
-from trakdis.transforms.normalization import ProprioceptionOverride, StateNormalizer
-from trakdis.transforms.visibility import OutOfViewFill
+from trakdis.envs import TASKS, render_version
+from trakdis.modules import (BCConfig, DTConfig, EncoderEnsemble, ImageTrunk, NormalizedEncoder, StateEncoder,
+                             make_bc_actor, make_dt_actor)
+from trakdis.modules.baselines import BCHead
+from trakdis.modules.decision_transformer import StochasticDTActor
+from trakdis.transforms.normalization import normalizer_from_state_dict, normalizer_state_dict
 from trakdis.utils import limits
 from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 __all__ = [
-    "make_acting_env",
-    "PolicyHandle",
-    "load_policy",
-    "load_teacher",
+    "POLICY_KEYS",
+    "ENCODER_KEYS",
+    "IMAGE_POLICY_KINDS",
     "save_policy",
+    "save_image_policy",
+    "read_policy_file",
     "save_encoder",
     "load_encoder",
     "encoder_from_dict",
     "check_render_version",
-    "IMAGE_POLICY_KINDS",
-    "save_image_policy",
-    "weight_copied_student",
-    "student_rollout_steps",
-    "weight_copy_race",
-    "weight_copy_scores",
-    "check_unseen_picker_mask",
-    "load_teacher_and_encoder",
 ]
-
-
-# --------------------------------------------------------------------------- acting environments
-def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale: float = 1.0,
-                    encoder: nn.Module | None = None, state_noise: float = 0.0, noise_seed: int | None = None,
-                    video_size: int | None = None, encoder_key: str = "state_estimate", picker_odometry: bool = False,
-                    **batched_kwargs):
-    """A batched env with the acting transforms of a DT policy.
-
-    ``encoder`` (student): ``EncoderTransform`` writes ``"state_estimate"`` from ``"pixels"``
-    (pixels are switched on); ``state_noise`` adds Gaussian noise to ``"state_estimate"``
-    (``"state"`` for a teacher); ``target_return`` adds the ``ReturnToGo`` countdown.
-    ``picker_odometry`` (with an encoder): ``PickerOdometry`` fuses the estimate's pickers with the
-    actions sent, before the noise.
-    ``encoder_key``: where the encoder writes (an image baseline's trunk: ``"image_features"``;
-    the state noise then goes there too).
-
-    ``video_size``: render ``"pixels"`` at this size (for videos) and write the agent's view,
-    resized to ``image_size``, to ``"pixels_agent"`` (which the encoder then reads). A resized
-    large render is close to, but not bit-identical with, a native small render.
-    """
-    from torchrl.envs import Compose, TransformedEnv
-
-    from trakdis.transforms import EncoderTransform, ImageResize, PickerOdometry, ReturnToGo, StateNoise
-
-    if not (math.isfinite(state_noise) and state_noise >= 0):  # -1 or nan were skipped silently
-        raise ValueError(f"state_noise must be a finite std >= 0, got {state_noise!r}")
-    agent_key, agent_size = "pixels", batched_kwargs.get("image_size", 32)  # what the encoder reads
-    transforms = []
-    if video_size is not None:
-        batched_kwargs.update(from_pixels=True, image_size=int(video_size))
-        agent_key = "pixels_agent"
-        transforms.append(ImageResize(in_keys=["pixels"], out_keys=[agent_key], size=agent_size))
-    if encoder is not None:
-        batched_kwargs["from_pixels"] = True
-    env = make_batched_env(task, **batched_kwargs)
-    if encoder is not None:
-        transforms.append(EncoderTransform(encoder, in_keys=[agent_key], out_keys=[encoder_key]))
-        if picker_odometry:
-            transforms.append(PickerOdometry.for_task(task, batched_kwargs.get("env_kwargs"), in_keys=[encoder_key],
-                                                      image_size=agent_size))
-    elif picker_odometry:
-        raise ValueError("picker_odometry fuses an encoder's estimates: it needs an encoder")
-    if state_noise > 0:
-        key = encoder_key if encoder is not None else "state"
-        transforms.append(StateNoise(state_noise, in_keys=[key], seed=noise_seed))
-    if target_return is not None:
-        transforms.append(ReturnToGo(target_return, rtg_scale=rtg_scale))
-    return TransformedEnv(env, Compose(*transforms)) if transforms else env
 
 
 # --------------------------------------------------------------------------- what a file may hold
@@ -197,9 +138,6 @@ def _check_model_size(source: str, where: str, build: Callable[[], nn.Module], *
 
 def _dt_config(source: str, raw: Any, *, where: str = "dt_config", max_params: int, max_activation_bytes: int):
     """The :class:`~trakdis.modules.DTConfig` of a file's ``where`` entry, once its sizes are within the limits."""
-    from trakdis.modules import DTConfig
-    from trakdis.modules.decision_transformer import StochasticDTActor
-
     if not isinstance(raw, Mapping):
         raise CheckpointError(f"{source}: '{where}' must be a dict of DTConfig fields, got {type(raw).__name__}")
     unknown = sorted(str(k) for k in raw if k not in {f.name for f in dataclasses.fields(DTConfig)})
@@ -273,8 +211,6 @@ def _cnn_kwargs(source: str, raw: Any, where: str, *, out_key: str, max_params: 
 def _check_encoder_dict(data: Any, source: str, *, max_params: int, max_activation_bytes: int) -> None:
     """An encoder file's dict (or a student's ``encoder`` entry): its entries, types and sizes, before
     :func:`encoder_from_dict` builds anything."""
-    from trakdis.modules import StateEncoder
-
     if not isinstance(data, Mapping):
         raise CheckpointError(f"{source}: the encoder must be a dict, got {type(data).__name__}")
     _check_keys(data, ENCODER_KEYS, source, "encoder file")
@@ -307,8 +243,6 @@ def _check_encoder_dict(data: Any, source: str, *, max_params: int, max_activati
 
 def _policy_fields(data: Mapping[str, Any], path: Path) -> None:
     """The plain entries of a policy file, typed and within range (:mod:`trakdis.utils.limits`)."""
-    from trakdis.envs import TASKS
-
     if not isinstance(data["task"], str) or data["task"] not in TASKS:
         raise CheckpointError(f"{path}: 'task' must be one of {list(TASKS)}, got {data['task']!r}")
     horizon = data.get("horizon")
@@ -375,18 +309,16 @@ def encoder_from_dict(data: Mapping[str, Any], *, source: str = "encoder file", 
     """The encoder of an encoder file's dict (read from ``source``), once its entries, types and sizes
     pass the checks (:mod:`trakdis.utils.limits`; a :class:`~trakdis.utils.checkpoint.CheckpointError`
     naming ``source`` otherwise)."""
-    from trakdis.modules import StateEncoder
-
     _check_encoder_dict(data, source, max_params=max_params, max_activation_bytes=max_activation_bytes)
     try:
-        return _encoder_from_dict(data, StateEncoder)
+        return _encoder_from_dict(data)
     except CheckpointError as err:
         raise CheckpointError(f"{source}: {err}") from err
     except (TypeError, KeyError, AttributeError, IndexError, ValueError) as err:
         raise CheckpointError(f"{source}: a malformed encoder entry ({type(err).__name__}: {err})") from err
 
 
-def _encoder_from_dict(data: Mapping[str, Any], StateEncoder) -> NormalizedEncoder | EncoderEnsemble:
+def _encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder | EncoderEnsemble:
     def member() -> NormalizedEncoder:
         kw = {**_EARLIER_ENCODER_LAYOUT, **dict(data["encoder_kwargs"])}
         state_dim = kw.pop("state_dim")
@@ -436,276 +368,29 @@ def load_encoder(path: str | Path, *, task: str | None = None, max_params: int =
 # --------------------------------------------------------------------------- policy files
 def save_policy(path: str | Path, *, kind: str, task: str, horizon: int, dt_config, actor: nn.Module,
                 observation_key: str, target_return: float, rtg_scale: float,
-                normalizer: StateNormalizer | None = None,
+                normalizer: ObservationNorm | Compose | None = None,
                 env_kwargs: Mapping[str, Any] | None = None, encoder_file: Mapping[str, Any] | None = None,
                 extra: Mapping[str, Any] | None = None) -> Path:
+    """Write a teacher's or student's policy file (the entries of this module's docstring; ``extra``: among
+    :data:`POLICY_KEYS`)."""
     cfg = dt_config.to_dict() if hasattr(dt_config, "to_dict") else dataclasses.asdict(dt_config)
     return save_checkpoint(path, {
         "kind": kind, "task": task, "horizon": int(horizon), "dt_config": cfg,
         "observation_key": observation_key, "actor": actor.state_dict(),
         "target_return": float(target_return), "rtg_scale": float(rtg_scale),
         "env_kwargs": dict(env_kwargs or {}), "encoder": encoder_file,
-        "normalizer": None if normalizer is None else normalizer.state_dict(),
+        "normalizer": None if normalizer is None else normalizer_state_dict(normalizer),
         **_check_extra(extra, POLICY_KEYS, "save_policy"),
     })
 
 
-@dataclass
-class PolicyHandle:
-    """A loaded policy: ``kind`` in ``{"expert", "teacher", "student", "bc_image", "dt_image"}``.
-
-    The image baselines (``"bc_image"``, ``"dt_image"``) hold their CNN trunk as ``encoder`` (run in
-    the env by ``EncoderTransform``, writing ``observation_key`` = ``"image_features"``) and their
-    head as ``actor`` (``bc_image``: a TanhNormal actor on the features; ``dt_image``: a DT actor,
-    acted with ``DTActingPolicy`` like a teacher or student)."""
-
-    kind: str
-    task: str
-    horizon: int
-    actor: nn.Module | None = None
-    encoder: nn.Module | None = None
-    observation_key: str = "state"
-    target_return: float = -1.0
-    rtg_scale: float = 1.0
-    expert_noise: float = 0.0
-    env_kwargs: dict = field(default_factory=dict)
-    source: str = ""
-    normalizer: StateNormalizer | None = None
-    """standardisation of the observation the DT reads (None: raw)"""
-    proprio_dims: tuple = ()
-    """dims of the student's estimate taken from the true state (picker positions), if any"""
-    picker_odometry: bool = False
-    """the student's picker estimates fused with its own commands (``PickerOdometry`` in its env)"""
-
-    @property
-    def uses_pixels(self) -> bool:
-        return self.encoder is not None
-
-    def make_env(self, *, num_envs: int = 1, split: str = "eval", seed: int | None = None, state_noise: float = 0.0,
-                 noise_seed: int | None = None,
-                 parallel: bool = False, from_pixels: bool | None = None, image_size: int = 32,
-                 target_return: float | None = None, video_size: int | None = None):
-        """The acting env of this policy (pixels on for a student, or when ``from_pixels``)."""
-        is_dt = self.kind not in ("expert", "bc_image")
-        return make_acting_env(
-            self.task,
-            target_return=(self.target_return if target_return is None else target_return) if is_dt else None,
-            rtg_scale=self.rtg_scale, encoder=self.encoder, state_noise=state_noise,
-            noise_seed=noise_seed if noise_seed is not None else (None if seed is None else seed + 7919),
-            num_envs=num_envs, parallel=parallel, seed=seed, split=split,
-            from_pixels=bool(from_pixels) or self.uses_pixels, image_size=image_size,
-            env_kwargs={**self.env_kwargs, "horizon": self.horizon}, video_size=video_size,
-            picker_odometry=self.picker_odometry and self.encoder is not None,
-            **({"encoder_key": self.observation_key} if self.kind in IMAGE_POLICY_KINDS else {}),
-        )
-
-    def make_policy(self, *, seed: int | None = None):
-        """A TensorDict module writing ``"action"``: the DT acting wrapper, or the scripted expert."""
-        if self.kind == "expert":
-            from trakdis.envs import ExpertPolicy
-
-            return ExpertPolicy(self.task, noise=self.expert_noise, seed=seed)
-        if self.kind == "bc_image":  # stateless: the actor on the env's image features
-            return self.actor.eval()
-        from trakdis.modules import DTActingPolicy
-
-        self.actor.eval()
-        policy = DTActingPolicy(self.actor, observation_key=self.observation_key)
-        pre = ProprioceptionOverride(self.proprio_dims) if self.proprio_dims else None
-        if self.normalizer is None and pre is None:
-            return policy
-        return NormalizedPolicy(policy, self.normalizer, self.observation_key, pre=pre)
-
-    def save(self, path: str | Path, dt_config, *, encoder_file: Mapping[str, Any] | None = None,
-             extra: Mapping[str, Any] | None = None) -> Path:
-        """Write this Decision Transformer policy (teacher or student) with :func:`save_policy`, from
-        the handle's own fields; ``dt_config``: its actor's :class:`~trakdis.modules.DTConfig`."""
-        return save_policy(path, kind=self.kind, task=self.task, horizon=self.horizon, dt_config=dt_config,
-                           actor=self.actor, observation_key=self.observation_key, target_return=self.target_return,
-                           rtg_scale=self.rtg_scale, normalizer=self.normalizer, env_kwargs=self.env_kwargs,
-                           encoder_file=encoder_file, extra=extra)
-
-
-def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_copy: bool = True,
-                          normalizer_keys: tuple[str, ...] = ("state_estimate",), proprio_dims: tuple = (),
-                          picker_odometry: bool = False, device: str = "cpu") -> tuple[PolicyHandle, Any]:
-    """The TraKDis student of a loaded ``teacher`` and its :class:`~trakdis.modules.DTConfig`.
-
-    A DT of the teacher's sizes reading ``"state_estimate"`` (``encoder``'s estimate from the
-    image, run in the acting env), starting as a copy of the teacher's weights (``weight_copy``;
-    else fresh weights), acting with the teacher's return-to-go, env options and state statistics
-    (a normaliser of ``normalizer_keys``); ``proprio_dims``: dims of the estimate taken from the
-    true state when acting; ``picker_odometry``: the estimate's pickers fused with the student's own
-    commands (``PickerOdometry``) when acting."""
-    from trakdis.modules import DTConfig, copy_teacher_weights, make_dt_actor
-
-    dt_cfg = DTConfig(**load_checkpoint(teacher.source)["dt_config"])
-    student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=device)
-    if weight_copy:
-        copy_teacher_weights(student, teacher.actor)
-    norm = teacher.normalizer  # its out-of-view fill too (--mask-unseen-pickers): the student reads what the teacher read
-    handle = PolicyHandle("student", teacher.task, teacher.horizon, actor=student, encoder=encoder,
-                          observation_key="state_estimate", target_return=teacher.target_return,
-                          rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
-                          normalizer=None if norm is None else norm.with_keys(normalizer_keys),
-                          proprio_dims=tuple(proprio_dims), picker_odometry=picker_odometry)
-    return handle, dt_cfg
-
-
-def check_unseen_picker_mask(teacher: PolicyHandle, encoder_file: Mapping[str, Any], *, encoder_source: str) -> bool:
-    """Whether ``teacher`` acts on out-of-view-masked states (``online_dt.py --mask-unseen-pickers``:
-    its normaliser carries an :class:`~trakdis.transforms.OutOfViewFill`); a ``ValueError`` naming
-    both files and the flag unless the encoder (``encoder_file``: an encoder file's dict, read from
-    ``encoder_source``; ``train_encoder.py --mask-unseen-pickers`` records ``mask_unseen_pickers``
-    and ``out_of_view_fill``) was trained on labels masked the same way."""
-    fill = None if teacher.normalizer is None else teacher.normalizer.fill
-    encoder_masked = bool(encoder_file.get("mask_unseen_pickers", False))
-    if (fill is not None) != encoder_masked:
-        def how(masked):
-            return "with --mask-unseen-pickers" if masked else "without --mask-unseen-pickers"
-
-        raise ValueError(f"teacher {teacher.source} was trained {how(fill is not None)} (online_dt.py) but encoder "
-                         f"{encoder_source} {how(encoder_masked)} (train_encoder.py): the student would read estimates "
-                         f"of states the teacher never saw; train both with the same --mask-unseen-pickers")
-    if fill is not None and encoder_file.get("out_of_view_fill") is not None:
-        theirs = OutOfViewFill.from_state_dict(encoder_file["out_of_view_fill"])
-        same = (theirs.image_size == fill.image_size and theirs.starts == fill.starts
-                and torch.allclose(theirs.camera_matrix, fill.camera_matrix) and torch.equal(theirs.fill, fill.fill))
-        if not same:
-            raise ValueError(f"teacher {teacher.source} and encoder {encoder_source} were trained with "
-                             f"--mask-unseen-pickers but different masks ({fill!r} vs {theirs!r})")
-    return fill is not None
-
-
-def load_teacher_and_encoder(teacher: str | Path, encoder: str | Path, *, root: str | Path, device: str = "cpu",
-                             max_params: int = limits.MAX_PARAMS,
-                             ) -> tuple[PolicyHandle, NormalizedEncoder, dict[str, Any], Path]:
-    """``(teacher, encoder, encoder_file, encoder_path)``: the teacher and the encoder a student is
-    made of (``distill.py``). ``teacher``: a teacher's policy file or ``online_dt`` run directory;
-    ``encoder``: an ``encoder.pt`` or ``train_encoder`` run directory; either ``"latest"``: the newest
-    run of that recipe under ``root`` (:func:`~trakdis.utils.logger.latest_run_file`, whose error
-    names ``--teacher`` / ``--encoder``). The encoder is loaded for the teacher's task, and both must
-    have been trained with ``--mask-unseen-pickers`` or neither (:func:`check_unseen_picker_mask`:
-    the teacher's normaliser carries the fill to the student). ``max_params``: the parameter limit of
-    both files (:func:`load_policy`)."""
-    from trakdis.utils.logger import latest_run_file
-
-    handle = load_teacher(latest_run_file(str(teacher), root, "online_dt", "policy.pt", flag="--teacher"),
-                          device=device, max_params=max_params)
-    encoder_path = latest_run_file(str(encoder), root, "train_encoder", "encoder.pt", flag="--encoder")
-    module, encoder_file = load_encoder(encoder_path, task=handle.task, max_params=max_params)
-    check_unseen_picker_mask(handle, encoder_file, encoder_source=str(encoder_path))
-    return handle, module, encoder_file, encoder_path
-
-
-def student_rollout_steps(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int,
-                          image_size: int = 32, num_envs: int = 2, parallel: bool = False,
-                          label_fill: OutOfViewFill | None = None) -> tuple[TensorDict, dict[str, float]]:
-    """``(steps, metrics)``: the ``"pixels"`` and true ``"state"`` of every step of ``episodes``
-    train-split episodes of the weight-copied student of ``teacher`` acting on a frozen copy of
-    ``encoder``'s estimates (the states the student visits; ``train_encoder.py --teacher``), and how
-    they went: ``normalized_performance`` (mean at the episodes' end) and the estimate's error per
-    state group (``task_spec(task).state_error_cm``; against the state the teacher reads, its
-    out-of-view pickers masked when its normaliser carries a fill). The returned ``"state"`` is raw,
-    or masked by ``label_fill`` (the labels of an encoder trained with ``--mask-unseen-pickers``).
-    ``parallel``: the ``num_envs`` envs step in worker processes (``ParallelEnv``; the same episodes)."""
-    from trakdis.envs import task_spec
-
-    res = _weight_copy_episodes(teacher, encoder, episodes=episodes, seed=seed, image_size=image_size,
-                                num_envs=num_envs, parallel=parallel, keep_episodes=True, desc="student rollouts")
-    steps = torch.cat([ep.select("pixels", "state", "state_estimate").to_tensordict() for ep in res.episodes])
-    fill = None if teacher.normalizer is None else teacher.normalizer.fill
-    target = steps["state"] if fill is None else fill.mask(steps["state"])  # what the encoder is trained to output
-    err = task_spec(teacher.task, horizon=teacher.horizon).state_error_cm((steps["state_estimate"] - target).abs())
-    steps = steps.exclude("state_estimate")
-    if label_fill is not None:
-        steps.set("state", label_fill.mask(steps["state"]))
-    return steps, {"normalized_performance": float(res.final_performance.mean()), **err}
-
-
-def weight_copy_scores(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int = 32,
-                       num_envs: int = 2, parallel: bool = False) -> np.ndarray:
-    """The final normalized performance ``[episodes]`` of ``episodes`` train-split episodes (configurations
-    drawn with ``seed``: the same for every encoder) of the weight-copied student of ``teacher`` acting on
-    a frozen copy of ``encoder``'s estimates: how well the teacher's weights fold with this encoder
-    (``train_encoder.py --select-episodes``, a selection among encoders). ``parallel``: as in
-    :func:`student_rollout_steps`."""
-    res = _weight_copy_episodes(teacher, encoder, episodes=episodes, seed=seed, image_size=image_size,
-                                num_envs=num_envs, parallel=parallel, keep_episodes=False, desc="weight copy")
-    return np.asarray(res.final_performance, dtype=np.float64)
-
-
-def weight_copy_race(teacher: PolicyHandle, encoders: Sequence[nn.Module], *, episodes: int, seed: int,
-                     chunk: int = 10, margin: float = 2.0, image_size: int = 32, num_envs: int = 2,
-                     parallel: bool = False, on_chunk: Callable[[dict, list], None] | None = None,
-                     ) -> dict[int, np.ndarray]:
-    """:func:`weight_copy_scores` of each of ``encoders``, raced: they play the episodes in chunks of
-    ``chunk`` (0: all at once), and after each chunk an encoder whose weight copy's mean is below the
-    leader's by more than ``margin`` standard errors of their paired difference plays no more
-    (:func:`~trakdis.evaluation.race_survivors`). Each plays in its own
-    :class:`~trakdis.evaluation.EpisodeStream`, so an encoder's scores are the first episodes of its
-    :func:`weight_copy_scores` (all of them for those that finish). ``on_chunk(scores, survivors)``
-    after each chunk. Returns ``{index: scores of the episodes it played}``."""
-    from trakdis.envs import close_env
-    from trakdis.evaluation import EpisodeStream, episode_score, race_survivors
-
-    if episodes < 1 or chunk < 0:
-        raise ValueError(f"weight_copy_race: episodes ({episodes}) must be >= 1 and chunk ({chunk}) >= 0")
-    scores: dict[int, list[float]] = {k: [] for k in range(len(encoders))}
-    alive, played, streams = list(scores), 0, {}  # streams: index -> (its stream, its env)
-
-    def stop(k: int) -> None:
-        stream, env = streams.pop(k)
-        stream.close()
-        close_env(env)
-
-    try:
-        while alive and played < episodes:
-            n = min(chunk or episodes, episodes - played)
-            for k in alive:
-                if k not in streams:  # its configurations drawn with seed, as weight_copy_scores draws them
-                    handle, env = _weight_copy_env(teacher, encoders[k], num_envs=num_envs, parallel=parallel,
-                                                   image_size=image_size)
-                    streams[k] = EpisodeStream(env, handle.make_policy(), max_steps=teacher.horizon, seed=seed), env
-                scores[k] += [episode_score(next(streams[k][0])) for _ in range(n)]
-            played += n
-            if played < episodes:
-                alive = race_survivors({k: scores[k] for k in alive}, margin=margin)
-                for k in set(streams) - set(alive):
-                    stop(k)
-            if on_chunk is not None:
-                on_chunk(scores, list(alive))
-    finally:
-        for k in list(streams):
-            stop(k)
-    return {k: np.asarray(v, dtype=np.float64) for k, v in scores.items()}
-
-
-def _weight_copy_env(teacher: PolicyHandle, encoder: nn.Module, *, num_envs: int, parallel: bool, image_size: int):
-    """The weight-copied student of ``teacher`` on a frozen copy of ``encoder``, and its train-split env."""
-    import copy
-
-    handle, _ = weight_copied_student(teacher, copy.deepcopy(encoder).cpu().eval())
-    return handle, handle.make_env(num_envs=num_envs, parallel=parallel, split="train", image_size=image_size)
-
-
-def _weight_copy_episodes(teacher: PolicyHandle, encoder: nn.Module, *, episodes: int, seed: int, image_size: int,
-                          num_envs: int, parallel: bool, keep_episodes: bool, desc: str):
-    from trakdis.envs import close_env
-    from trakdis.evaluation import run_episodes
-
-    handle, env = _weight_copy_env(teacher, encoder, num_envs=num_envs, parallel=parallel, image_size=image_size)
-    try:
-        return run_episodes(env, handle.make_policy(), episodes, max_steps=teacher.horizon, keep_episodes=keep_episodes,
-                            seed=seed, desc=desc)
-    finally:
-        close_env(env)
-
-
-def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
-                expert_noise: float = 0.0, device: str = "cpu", max_params: int = limits.MAX_PARAMS,
-                max_activation_bytes: int = limits.MAX_ACTIVATION_BYTES) -> PolicyHandle:
-    """``"expert"`` or the path of a policy file (or of a run directory holding ``policy.pt``).
+def read_policy_file(path: str | Path, *, task: str | None = None, device: str = "cpu",
+                     max_params: int = limits.MAX_PARAMS,
+                     max_activation_bytes: int = limits.MAX_ACTIVATION_BYTES) -> dict[str, Any]:
+    """The policy of a policy file (or of a run directory holding ``policy.pt``) as the fields of a
+    :class:`~trakdis.policies.PolicyHandle` (``kind``, ``task``, ``horizon``, ``actor``, ``encoder``,
+    ``observation_key``, ..., ``source``: the file), its models built on ``device``; ``task``: refuse
+    (``ValueError``) a policy for another task.
 
     A file is untrusted input (docs/security.md): it must be a regular file, unpack to no more than
     its models need, hold only the entries trakdis writes (:data:`POLICY_KEYS`), each of its type and
@@ -713,14 +398,7 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
     most ``max_params`` parameters and ``max_activation_bytes`` of activations per acting window
     (estimated from its configs before anything is built; raise them for a larger policy you trust).
     Anything else is a :class:`~trakdis.utils.checkpoint.CheckpointError` naming the file and the entry."""
-    if horizon is not None and not (limits.is_int(horizon) and 1 <= horizon <= limits.MAX_HORIZON):
-        raise ValueError(f"horizon must be >= 1 (an int, at most {limits.MAX_HORIZON}; None: the policy's own), "
-                         f"got {horizon!r}")
-    if str(spec) == "expert":
-        if task is None:
-            raise ValueError("the expert policy needs --task")
-        return PolicyHandle("expert", task, 100 if horizon is None else horizon, expert_noise=expert_noise, source="expert")
-    path = Path(spec)
+    path = Path(path)
     if path.is_dir():
         path = path / "policy.pt"
     data = load_checkpoint(path, required=("kind", "task", "actor", "observation_key"),
@@ -736,19 +414,17 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
     sizes = dict(max_params=max_params, max_activation_bytes=max_activation_bytes)
     try:
         if data["kind"] in IMAGE_POLICY_KINDS:
-            return _load_image_policy(path, data, horizon=horizon, device=device, **sizes)
-        return _load_dt_policy(path, data, horizon=horizon, device=device, **sizes)
+            return _image_policy_fields(path, data, device=device, **sizes)
+        return _dt_policy_fields(path, data, device=device, **sizes)
     except CheckpointError:
         raise
     except (TypeError, KeyError, AttributeError, IndexError, ValueError) as err:  # a field of an unexpected form
         raise CheckpointError(f"{path}: a malformed policy file ({type(err).__name__}: {err})") from err
 
 
-def _load_dt_policy(path: Path, data: Mapping[str, Any], *, horizon: int | None, device: str, max_params: int,
-                    max_activation_bytes: int) -> PolicyHandle:
-    """A teacher's or student's :class:`PolicyHandle` from its checked file dict (:func:`load_policy`)."""
-    from trakdis.modules import make_dt_actor
-
+def _dt_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, max_params: int,
+                      max_activation_bytes: int) -> dict[str, Any]:
+    """A teacher's or student's policy from its checked file dict (:func:`read_policy_file`)."""
     if "dt_config" not in data:
         raise CheckpointError(f"{path}: a {data['kind']} policy file lacks 'dt_config'")
     cfg = _dt_config(str(path), data["dt_config"], max_params=max_params, max_activation_bytes=max_activation_bytes)
@@ -767,26 +443,13 @@ def _load_dt_policy(path: Path, data: Mapping[str, Any], *, horizon: int | None,
                                     max_activation_bytes=max_activation_bytes)
     if data["kind"] == "student" and encoder is None:
         raise CheckpointError(f"{path}: a student policy file must contain its encoder")
-    return PolicyHandle(
-        data["kind"], data["task"], data["horizon"] if horizon is None else horizon, actor=actor.eval(), encoder=encoder,
+    return dict(
+        kind=data["kind"], task=data["task"], horizon=data["horizon"], actor=actor.eval(), encoder=encoder,
         observation_key=data["observation_key"], target_return=data["target_return"],
         rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
-        normalizer=StateNormalizer.from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
+        normalizer=normalizer_from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
         proprio_dims=tuple(data.get("proprio_dims") or ()), picker_odometry=bool(data.get("picker_odometry", False)),
     )
-
-
-def load_teacher(spec: str | Path, *, task: str | None = None, horizon: int | None = None,
-                 device: str = "cpu", **limits_kw: int) -> PolicyHandle:
-    """:func:`load_policy` of a teacher's policy file (or run directory); a file of another kind, or
-    a teacher for another ``task`` or ``horizon`` (each checked when given), is a
-    :class:`~trakdis.utils.checkpoint.CheckpointError`."""
-    teacher = load_policy(spec, device=device, **limits_kw)
-    if teacher.kind != "teacher" or task not in (None, teacher.task) or horizon not in (None, teacher.horizon):
-        expected = "".join([f" for {task}" if task else "", f" (horizon {horizon})" if horizon else ""])
-        raise CheckpointError(f"{teacher.source}: a {teacher.kind} for {teacher.task} (horizon {teacher.horizon}); "
-                              f"expected a teacher{expected}")
-    return teacher
 
 
 # --------------------------------------------------------------------------- image baselines
@@ -813,11 +476,9 @@ def save_image_policy(path: str | Path, *, kind: str, task: str, horizon: int, t
     })
 
 
-def _load_image_policy(path: Path, data: Mapping[str, Any], *, horizon: int | None, device: str, max_params: int,
-                       max_activation_bytes: int) -> PolicyHandle:
-    from trakdis.modules import BCConfig, ImageTrunk, make_bc_actor, make_dt_actor
-    from trakdis.modules.baselines import BCHead
-
+def _image_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, max_params: int,
+                         max_activation_bytes: int) -> dict[str, Any]:
+    """An image baseline's policy from its checked file dict (:func:`read_policy_file`)."""
     config_key = "bc_config" if data["kind"] == "bc_image" else "dt_config"
     missing = [k for k in (config_key, "trunk_config", "trunk") if k not in data]
     if missing:
@@ -852,7 +513,7 @@ def _load_image_policy(path: Path, data: Mapping[str, Any], *, horizon: int | No
         actor.load_state_dict(data["actor"])
     except RuntimeError as err:
         raise CheckpointError(f"{path}: actor weights do not match its {config_key}: {err}") from err
-    return PolicyHandle(
-        data["kind"], data["task"], data["horizon"] if horizon is None else horizon, actor=actor.eval(),
+    return dict(
+        kind=data["kind"], task=data["task"], horizon=data["horizon"], actor=actor.eval(),
         encoder=trunk.eval(), observation_key=data["observation_key"], target_return=data.get("target_return", 0.0),
         rtg_scale=data.get("rtg_scale", 1.0), env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path))
