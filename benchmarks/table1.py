@@ -118,7 +118,7 @@ class Table1Config(RunConfig):
     """options of recipes/online_dt.py (the method's teacher, as recipes/pipeline.py runs it: trakdis.method;
     the stage collects the images for the encoder and evaluates nothing itself, unless these say otherwise)"""
     teacher_candidates: int | None = None
-    """teacher stages per seed (default: the task's, trakdis.method.TEACHER_CANDIDATES: 3 on the diagonal folds, 1
+    """teacher stages per seed (default: the task's TaskDefaults.teacher_candidates: 3 on the diagonal folds, 1
     on ClothFold) (candidate i: seed + 1000 i); the one that folds best on --teacher-select-episodes
     train-split episodes is kept (--teacher-select-margin; trakdis.method.teacher_stage);
     the stages after it are named after the kept candidate (<name>-<task>-s<seed>-c<i>-...)"""

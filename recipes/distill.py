@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Optional
 
 from trakdis.data import DataConfig, load_encoded_dataset, student_buffer
-from trakdis.envs import task_spec
+from trakdis.envs import task_defaults, task_spec
 from trakdis.evaluation import EvalConfig, RunEnvs, run_episodes
 from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
@@ -106,15 +106,17 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
         """Whether every distillation window holds the expert's own actions (the expert data, no rollouts)."""
         return self.distill and self.expert_data and self.episodes_per_round == 0
 
+    def resolved_expert_coef(self, task: str) -> float:
+        """``--expert-coef``, or unset the task's ``TaskDefaults.expert_coef`` where the windows hold the expert's
+        own actions (else 0)."""
+        if self.expert_coef is not None:
+            return self.expert_coef
+        return task_defaults(task).expert_coef if self.expert_actions else 0.0
 
-# --select-episodes by task: on ClothFold the 10 rounds end above the weight copy, yet a 30-episode selection kept
-# the copy; on the diagonal folds distillation can lower it, so the train split picks the snapshot
-# (docs/recipes/distill.md).
-SELECT_EPISODES = {"ClothFold": 0, "ClothFoldDiagonalPinned": 30, "ClothFoldDiagonalUnpinned": 30}
-# --expert-coef by task: on ClothFold the teacher labels most of the demonstrations' grasp onsets "open", and the
-# expert's actions beside its labels raise the student; on the pinned diagonal fold they lower it below the copy
-# (docs/recipes/distill.md).
-EXPERT_COEF = {"ClothFold": 1.0, "ClothFoldDiagonalPinned": 0.0, "ClothFoldDiagonalUnpinned": 0.0}
+    def resolved_select_episodes(self, task: str) -> int:
+        """``--select-episodes``, or unset the task's ``TaskDefaults.select_episodes``."""
+        return task_defaults(task).select_episodes if self.select_episodes is None else self.select_episodes
+
 
 PRESETS = {"paper": {"optimizer": "lamb", "lr": 1e-4, "rounds": 60, "episodes_per_round": 1, "eval_episodes": 100,
                      "expert_data": False, "loss_function": "nll",
@@ -137,7 +139,7 @@ def main(argv=None) -> dict:
                                                    picker_odometry=odometry)
     student, normalizer = student_handle.actor, student_handle.normalizer
     teacher.actor.eval().requires_grad_(False)
-    expert_coef = (EXPERT_COEF[task] if cfg.expert_actions else 0.0) if cfg.expert_coef is None else cfg.expert_coef
+    expert_coef = cfg.resolved_expert_coef(task)
     run.print(f"{task}: teacher {teacher.source}, encoder {enc_path} (val MAE {enc_file.get('val_mae', float('nan')):.4f}), "
               f"weight copy {cfg.weight_copy}, {'distillation' if cfg.distill else 'expert imitation (--no-distill)'}"
               + (f", the expert's actions beside the teacher's (--expert-coef {expert_coef:g})" if expert_coef else "")
@@ -182,7 +184,7 @@ def main(argv=None) -> dict:
     # plays); the weight copy is kept unless a later snapshot beats it measurably (docs: the cause). Fresh weights
     # (--no-weight-copy) are no candidate: there is no copy to guard, and an untrained DT kept because no round beat
     # it measurably would be the final policy; the first round scored is then the one the later ones must beat.
-    select_episodes = SELECT_EPISODES[task] if cfg.select_episodes is None else cfg.select_episodes
+    select_episodes = cfg.resolved_select_episodes(task)
     select_env = cfg.make_env(student_handle, "train") if select_episodes and cfg.rounds else None
     selection = SnapshotSelection.on_episodes(run, student_handle, evals, select_env, state, episodes=select_episodes,
                                               module=student, every=cfg.select_every, margin=cfg.select_margin,

@@ -5,7 +5,7 @@
     python recipes/pipeline.py --name cf --resume                # continue after a kill
 
 1. ``recipes/online_dt.py``: the expert dataset (on ClothFold, grasps closed within 1 cm for every stage:
-   ``trakdis.method.DATA_ARGS``) and the privileged teacher (by default offline, on states with 1 cm of
+   ``TaskDefaults.close_radius``) and the privileged teacher (by default offline, on states with 1 cm of
    Gaussian noise: ``--teacher-args``). With ``--teacher-candidates N`` the teacher stage runs N times (other
    seeds) and the one that folds best on ``--teacher-select-episodes`` train-split episodes is kept
    (``trakdis.method.teacher_stage``); the stages after it are then named ``<name>-c<i>-...``.
@@ -65,7 +65,7 @@ class PipelineConfig(RunConfig):
     """extra options for recipes/online_dt.py (default: the offline teacher trained on states with
     1 cm of Gaussian noise, so that its weights act on an encoder's estimates; trakdis.method)"""
     teacher_candidates: int | None = None
-    """teacher stages run (default: the task's, trakdis.method.TEACHER_CANDIDATES: 3 on the diagonal folds, 1 on
+    """teacher stages run (default: the task's TaskDefaults.teacher_candidates: 3 on the diagonal folds, 1 on
     ClothFold) (candidate i: --seed + 1000 i); the one that folds best on --teacher-select-episodes
     train-split episodes is kept (--teacher-select-margin; trakdis.method.teacher_stage)"""
     teacher_select_episodes: int = 30

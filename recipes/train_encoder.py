@@ -16,7 +16,7 @@ import torch
 from tensordict import TensorDict
 
 from trakdis.data import DataConfig, load_train_val_steps
-from trakdis.envs import task_spec
+from trakdis.envs import task_defaults, task_spec
 from trakdis.envs.specs import TaskName
 from trakdis.modules import EncoderEnsemble, NormalizedEncoder, StateEncoder
 from trakdis.objectives import EncoderLoss
@@ -98,10 +98,12 @@ class TrainEncoderConfig(RunConfig):
             raise ValueError(f"--select-episodes {self.select_episodes}: needs --members >= 2 (got {self.members}) "
                              f"and --teacher (the weight copy plays the episodes)")
 
-
-# --test-time-flip auto: the tasks where it was measured to lift the weight copy on every seed
-# (docs/recipes/train_encoder.md; on the diagonal folds it went both ways)
-TEST_TIME_FLIP_TASKS = ("ClothFold",)
+    @property
+    def flips(self) -> bool:
+        """Whether the encoder averages in the mirrored view: a test-time augmentation, so never with --no-aug;
+        ``--test-time-flip auto``: where it was measured to help (the task's ``TaskDefaults.test_time_flip``)."""
+        return self.aug and (self.test_time_flip == "on"
+                             or self.test_time_flip == "auto" and task_defaults(self.task).test_time_flip)
 
 
 def main(argv=None) -> dict:
@@ -136,8 +138,7 @@ def main(argv=None) -> dict:
                                               hidden_dim=cfg.hidden_dim, head=cfg.head, stem_stride=cfg.stem_stride,
                                               coord_channels=cfg.coord_channels), mean, std) for _ in range(cfg.members)]
     encoder = (members[0] if cfg.members == 1 else EncoderEnsemble(members)).to(cfg.device)  # --members: their mean
-    # a test-time augmentation, so none with --no-aug; "auto": where it was measured to help
-    flip = cfg.aug and (cfg.test_time_flip == "on" or cfg.test_time_flip == "auto" and cfg.task in TEST_TIME_FLIP_TASKS)
+    flip = cfg.flips
     loss = EncoderLoss(encoder, state_mirror=spec.state_mirror, augment=cfg.aug, flip_prob=cfg.flip_prob, pad=cfg.pad)
     optim = make_optimizer("adamw", encoder.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     with_rounds = bool(cfg.teacher) and cfg.student_rounds > 0

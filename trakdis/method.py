@@ -18,6 +18,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
+from trakdis.envs.task_defaults import task_defaults
 from trakdis.evaluation import pick_candidate, read_final_scores
 from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.stages import Stages
@@ -34,20 +35,9 @@ ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
 one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest
 effect on the student, docs/recipes/train_encoder.md); raced in chunks of 10 (--select-chunk), a copy clearly
 behind stops early"""
-DATA_ARGS = {"ClothFold": "--data.close-radius 0.01"}
-"""Per task, the expert data of every stage (and of Table I's image baselines), before a caller's options: on
-ClothFold the demonstrations close their grasps within 1 cm of the corners, not the task expert's 2 cm (which
-serves the exact-state DAgger teacher). A policy acting on blurred states (this teacher's noisy ones, the student's
-estimates) closes about 1.5 cm farther out than its demonstrations; from 2 cm that lands beyond the grasp's reach
-(docs/recipes/pipeline.md)"""
 CANDIDATE_SEED_STRIDE = 1000
 """Teacher candidate ``i`` of a run with seed ``s`` trains with seed ``s + CANDIDATE_SEED_STRIDE * i`` (candidate 0:
 the run's own seed), so the candidates of Table I's consecutive seeds never share one"""
-TEACHER_CANDIDATES = {"ClothFoldDiagonalPinned": 3, "ClothFoldDiagonalUnpinned": 3}
-"""Per task, the teacher stages run when a caller names no number (:func:`teacher_stage`'s ``candidates``; 1
-elsewhere): on the diagonal folds one draw of the stage often lands far below the others, and the train split finds
-the better ones; on ClothFold the draws are close and 30 selection episodes do not rank them (measured:
-docs/recipes/distill.md)"""
 STUDENT_ARGS = ""
 """recipes/distill.py: its own defaults (weight copy, distillation on the expert data, picker odometry, the per-task
 snapshot selection and expert-action term)"""
@@ -58,8 +48,9 @@ def _flags(*, parallel: bool = False, mask_unseen_pickers: bool = False) -> list
 
 
 def teacher_candidates(task: str, requested: int | None = None) -> int:
-    """The teacher candidates of ``task``: ``requested``, or the task's default (``TEACHER_CANDIDATES``, else 1)."""
-    return TEACHER_CANDIDATES.get(task, 1) if requested is None else int(requested)
+    """The teacher candidates of ``task``: ``requested``, or the task's default (``TaskDefaults.teacher_candidates``,
+    trakdis.envs.task_defaults)."""
+    return task_defaults(task).teacher_candidates if requested is None else int(requested)
 
 
 def check_teacher_selection(candidates: int | None, select_episodes: int, margin: float = 0.0) -> None:
@@ -72,8 +63,10 @@ def check_teacher_selection(candidates: int | None, select_episodes: int, margin
 
 
 def data_args(task: str) -> list[str]:
-    """The expert data options every stage of ``task`` gets (``DATA_ARGS``), so that all read one dataset."""
-    return shlex.split(DATA_ARGS.get(task, ""))
+    """The expert data options every stage of ``task`` gets (from its ``TaskDefaults.close_radius``,
+    trakdis.envs.task_defaults), so that all read one dataset (and Table I's image baselines the same)."""
+    radius = task_defaults(task).close_radius
+    return [] if radius is None else ["--data.close-radius", f"{radius:g}"]
 
 
 def teacher_stage_args(task: str, extra: str = TEACHER_ARGS, *, mask_unseen_pickers: bool = False) -> list[str]:
@@ -132,7 +125,7 @@ def no_distill_stage_args(teacher: Any, student: Any) -> list[str]:
 
 def baseline_stage_args(task: str, extra: str = "") -> list[str]:
     """``recipes/bc_image.py`` / ``recipes/dt_image.py``: an image baseline of ``task`` on the method's expert data
-    (``DATA_ARGS``); it evaluates nothing itself (the callers do)."""
+    (:func:`data_args`); it evaluates nothing itself (the callers do)."""
     return ["--task", task, *data_args(task), "--eval-episodes", "0", *shlex.split(extra)]
 
 

@@ -68,12 +68,12 @@ def test_a_bad_encoder_option_is_refused_while_parsing(bad, capsys):
 
 
 def test_every_stage_reads_the_same_expert_data_per_task():
-    """trakdis.method.DATA_ARGS: on ClothFold every stage (and Table I's image baselines) reads demonstrations whose
+    """TaskDefaults.close_radius (trakdis.method.data_args): on ClothFold every stage (and Table I's image baselines) reads demonstrations whose
     grasps close within 1 cm, not the task expert's 2 cm (docs/recipes/pipeline.md); the diagonal folds' the
     default; a caller's option still wins."""
-    from trakdis.method import DATA_ARGS, baseline_stage_args, data_args
+    from trakdis.method import baseline_stage_args, data_args
 
-    assert DATA_ARGS == {"ClothFold": "--data.close-radius 0.01"} and data_args("ClothFoldDiagonalPinned") == []
+    assert data_args("ClothFold") == ["--data.close-radius", "0.01"] and data_args("ClothFoldDiagonalPinned") == []
     recipes = {"online_dt": "OnlineDTConfig", "train_encoder": "TrainEncoderConfig", "distill": "DistillConfig",
                "bc_image": "BCImageConfig", "dt_image": "DTImageConfig"}
     configs = {name: getattr(load_recipe(name), cls) for name, cls in recipes.items()}
@@ -198,7 +198,7 @@ def test_table1_names_the_stages_after_the_kept_teacher(tmp_path):
 
 
 def test_the_teacher_candidates_default_is_the_tasks(tmp_path):
-    """No --teacher-candidates: three on the diagonal folds, one on ClothFold (trakdis.method.TEACHER_CANDIDATES);
+    """No --teacher-candidates: three on the diagonal folds, one on ClothFold (TaskDefaults.teacher_candidates);
     a number given is used on every task; --quick stays at one."""
     assert [teacher_candidates(t) for t in ("ClothFold", "ClothFoldDiagonalPinned", "ClothFoldDiagonalUnpinned")] \
         == [1, 3, 3]

@@ -256,8 +256,8 @@ def test_distill_files_and_resume(workdir, student):
     assert frame.dropna(subset=["selection/normalized_performance"])["step"].tolist() == [0, 2, 4]  # 2 updates a round
     saved = load_checkpoint(student / "policy.pt")
     assert list(saved["selection_scores"]) == [0, 1, 2] and saved["selected_round"] in (0, 1, 2)
-    assert saved["select_episodes"] == 2  # given: the task's default (SELECT_EPISODES) does not apply
-    assert saved["expert_coef"] == 0.0  # rollouts in the data: the task's default (EXPERT_COEF) does not apply
+    assert saved["select_episodes"] == 2  # given: the task's default (TaskDefaults.select_episodes) does not apply
+    assert saved["expert_coef"] == 0.0  # rollouts in the data: the task's default (TaskDefaults.expert_coef) does not apply
     assert saved["picker_odometry"] is True  # the default (--picker-odometry auto, executed actions)
     handle = load_policy(student)
     assert handle.picker_odometry and any(type(t).__name__ == "PickerOdometry" for t in handle.make_env().transform)
@@ -313,7 +313,7 @@ def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monke
     assert kept["step"].tolist() == [4] and kept["eval_kept/normalized_performance"].item() == state["final_eval"]
     saved = load_checkpoint(workdir / "runs" / "distill" / "middle" / "policy.pt")
     assert saved["selected_round"] == 1
-    assert saved["expert_coef"] == 1.0  # the expert data alone: ClothFold's default (EXPERT_COEF)
+    assert saved["expert_coef"] == 1.0  # the expert data alone: ClothFold's default (TaskDefaults.expert_coef)
     assert frame["train/loss_expert"].notna().sum() == 2
     assert saved["picker_odometry"] is False  # --picker-odometry off: the default (on) does not apply
 

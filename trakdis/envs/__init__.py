@@ -20,6 +20,7 @@ from trakdis.envs.cloth_env import (  # noqa: E402
 from trakdis.envs.experts import EXPERT_VERSION, ExpertPolicy, add_movement_noise, expert_action, expert_version  # noqa: E402
 from trakdis.envs.model import PICKER_MARKER_RADIUS, camera_fovy, render_version  # noqa: E402
 from trakdis.envs.specs import TASKS, ClothConfig, TaskName, TaskSpec, cloth_config, task_spec  # noqa: E402
+from trakdis.envs.task_defaults import TASK_DEFAULTS, TaskDefaults, task_defaults  # noqa: E402
 from trakdis.envs.torchrl_env import ClothInfoReader, make_env, with_contract_keys  # noqa: E402
 from trakdis.envs.batched import SleepWaitParallelEnv, close_env, make_batched_env, start_in_background  # noqa: E402
 
@@ -39,6 +40,9 @@ __all__ = [
     "TaskSpec",
     "ClothConfig",
     "task_spec",
+    "TaskDefaults",
+    "TASK_DEFAULTS",
+    "task_defaults",
     "cloth_config",
     "ClothEnv",
     "ClothFoldEnv",

@@ -22,6 +22,7 @@ from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from trakdis.envs.specs import task_spec
+from trakdis.envs.task_defaults import task_defaults
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 
 __all__ = ["DTConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor", "recipe_hidden_action_dims"]
@@ -144,16 +145,11 @@ class DTConfig:
         return dataclasses.asdict(self)
 
 
-# Tasks whose DTs the recipes train with the grasp commands left out of the action tokens (measured,
-# docs/recipes/online_dt.md: on ClothFold the teacher copied its previous grasp token and missed the first
-# close in most of its demonstrations; on the diagonal folds it did not, and hiding it lowered the student)
-HIDDEN_GRASP_TASKS = ("ClothFold",)
-
-
 def recipe_hidden_action_dims(task: str) -> tuple[int, ...]:
     """The recipes' default ``DTConfig.hidden_action_dims`` for ``task``: its grasp commands
-    (``TaskSpec.grasp_dims``) if it is in :data:`HIDDEN_GRASP_TASKS`, else none."""
-    return task_spec(task).grasp_dims if task in HIDDEN_GRASP_TASKS else ()
+    (``TaskSpec.grasp_dims``) where its ``TaskDefaults.hidden_grasp`` says so (trakdis.envs.task_defaults),
+    else none."""
+    return task_spec(task).grasp_dims if task_defaults(task).hidden_grasp else ()
 
 
 class DTBackbone(nn.Module):

@@ -1,0 +1,57 @@
+"""The method's per-task rules live in one table (trakdis.envs.task_defaults): every task has an entry, and
+every recipe's default resolves to the table's value (a given option still wins)."""
+import dataclasses
+
+import pytest
+
+from trakdis.envs import TASKS, task_spec
+from trakdis.envs.task_defaults import TASK_DEFAULTS, TaskDefaults, task_defaults
+from trakdis.method import data_args, teacher_candidates
+from trakdis.modules import recipe_hidden_action_dims
+from trakdis.utils.config import parse_config
+
+from .conftest import load_recipe
+
+
+def test_every_task_has_its_defaults():
+    assert set(TASK_DEFAULTS) == set(TASKS)
+    assert all(isinstance(d, TaskDefaults) for d in TASK_DEFAULTS.values())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        task_defaults("ClothFold").expert_coef = 0.5
+    with pytest.raises(ValueError, match="Unknown task"):
+        task_defaults("NoSuchTask")
+
+
+def test_the_measured_values():
+    cf, pinned, unpinned = (task_defaults(t) for t in ("ClothFold", "ClothFoldDiagonalPinned",
+                                                       "ClothFoldDiagonalUnpinned"))
+    assert (cf.select_episodes, pinned.select_episodes, unpinned.select_episodes) == (0, 30, 30)
+    assert (cf.expert_coef, pinned.expert_coef, unpinned.expert_coef) == (1.0, 0.0, 0.0)
+    assert (cf.test_time_flip, pinned.test_time_flip, unpinned.test_time_flip) == (True, False, False)
+    assert (cf.hidden_grasp, pinned.hidden_grasp, unpinned.hidden_grasp) == (True, False, False)
+    assert (cf.teacher_candidates, pinned.teacher_candidates, unpinned.teacher_candidates) == (1, 3, 3)
+    assert (cf.close_radius, pinned.close_radius, unpinned.close_radius) == (0.01, None, None)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_each_recipe_resolves_the_tables_default(task):
+    defaults = task_defaults(task)
+    distill = load_recipe("distill").DistillConfig
+    cfg = parse_config(distill, ["--teacher", "t.pt", "--encoder", "e.pt", "--episodes-per-round", "0"])
+    assert cfg.expert_actions and cfg.resolved_expert_coef(task) == defaults.expert_coef
+    assert cfg.resolved_select_episodes(task) == defaults.select_episodes
+    given = parse_config(distill, ["--teacher", "t.pt", "--encoder", "e.pt", "--expert-coef", "0.5",
+                                   "--select-episodes", "7"])
+    assert given.resolved_expert_coef(task) == 0.5 and given.resolved_select_episodes(task) == 7
+    rollouts = parse_config(distill, ["--teacher", "t.pt", "--encoder", "e.pt", "--episodes-per-round", "1"])
+    assert rollouts.resolved_expert_coef(task) == 0.0  # not the expert's own actions: no expert term
+
+    encoder = load_recipe("train_encoder").TrainEncoderConfig
+    assert parse_config(encoder, ["--task", task]).flips == defaults.test_time_flip
+    assert parse_config(encoder, ["--task", task, "--test-time-flip", "on"]).flips
+    assert not parse_config(encoder, ["--task", task, "--test-time-flip", "on", "--no-aug"]).flips
+
+    assert recipe_hidden_action_dims(task) == (task_spec(task).grasp_dims if defaults.hidden_grasp else ())
+    assert teacher_candidates(task) == defaults.teacher_candidates and teacher_candidates(task, 2) == 2
+    assert data_args(task) == ([] if defaults.close_radius is None
+                               else ["--data.close-radius", str(defaults.close_radius)])
