@@ -33,6 +33,11 @@ def test_first_close_distance_and_lift():
     miss = grasp_report(TASK, _episode([0.0, 0.0, 0.10], close_at=2))
     assert miss["picker0_first_close_cm"] == pytest.approx(6.0, abs=1e-4) and miss["picker0_corner_lifted"] is False
     assert miss["picker0_first_close_step"] == 2 and math.isnan(miss["picker0_last_release_step"])
+    assert miss["picker0_first_close_height_cm"] == pytest.approx(6.0, abs=1e-4)  # straight above: all height
+    # 6 cm to the side and level with the corner: as far, but no height
+    side = grasp_report(TASK, _episode([0.10, 0.0, 0.0], close_at=2))
+    assert side["picker0_first_close_cm"] == pytest.approx(6.0, abs=1e-4)
+    assert side["picker0_first_close_height_cm"] == pytest.approx(0.0, abs=1e-4)
     # c00 ends where it started, its target cNN 30 cm away in x and y
     assert miss["picker0_placement_cm"] == pytest.approx(30.0 * math.sqrt(2.0), abs=1e-3)
     # closing on the corner (step 5: distance 0) and the corner lifted 10 cm
@@ -40,10 +45,10 @@ def test_first_close_distance_and_lift():
     assert hit["picker0_first_close_cm"] == pytest.approx(0.0, abs=1e-4) and hit["picker0_corner_lifted"] is True
     never = grasp_report(TASK, _episode([0.0, 0.0, 0.10], close_at=None, lift_cm=1.0))
     assert math.isnan(never["picker0_first_close_cm"]) and never["picker0_corner_lifted"] is False
-    assert math.isnan(never["picker0_first_close_step"])
+    assert math.isnan(never["picker0_first_close_step"]) and math.isnan(never["picker0_first_close_height_cm"])
     line = summarize_grasps(TASK, [miss, hit, never])
     assert line == (f"grasps: 1 of 2 first closes farther than {FAR_CLOSE_CM:g} cm from their corner; "
-                    "a source corner never lifted in 2 of 3 episodes; median first close at step 3.5, "
+                    "a source corner never lifted in 2 of 3 episodes; median first close at step 3.5, 3.0 cm above its corner, "
                     "source corners end 42.4 cm from their targets (median)")
 
 
@@ -62,7 +67,8 @@ def test_two_pickers_and_bad_input():
     ep = TensorDict({"state": torch.zeros(4, 18), "action": torch.ones(4, 8)}, batch_size=[4])
     report = grasp_report("ClothFold", ep)
     assert set(report) == {f"picker{p}_{k}" for p in (0, 1) for k in (
-        "first_close_cm", "first_close_step", "corner_lifted", "last_release_step", "placement_cm")}
+        "first_close_cm", "first_close_height_cm", "first_close_step", "corner_lifted", "last_release_step",
+        "placement_cm")}
     assert grasp_report("ClothFold", TensorDict({"action": torch.ones(4, 8)}, batch_size=[4])) is None
     with pytest.raises(ValueError, match=r"state \[T, 18\]"):
         grasp_report("ClothFold", TensorDict({"state": torch.zeros(4, 15), "action": torch.ones(4, 8)}, batch_size=[4]))

@@ -31,7 +31,9 @@ LIFTED_CM = 3.0
 def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] | None:
     """Per picker ``p``: ``picker{p}_first_close_cm`` (distance in cm between the picker and its
     source corner at the first step whose grasp command is > 0, the env's threshold; NaN if it never
-    closed), ``picker{p}_first_close_step`` (that step's index), ``picker{p}_corner_lifted`` (whether
+    closed), ``picker{p}_first_close_height_cm`` (the picker's height in cm above its source corner at
+    that step: a close 3 cm or more above the corner rarely lifts it, docs/recipes/online_dt.md),
+    ``picker{p}_first_close_step`` (that step's index), ``picker{p}_corner_lifted`` (whether
     its source corner ever rose ``LIFTED_CM`` above its target corner), ``picker{p}_last_release_step``
     (the last step whose command opened a closed picker; NaN if it never opened after a close) and
     ``picker{p}_placement_cm`` (the horizontal distance in cm between its source corner and its target
@@ -66,6 +68,7 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
         closes = closed[:, p].nonzero()
         t = int(closes[0, 0]) if len(closes) else None
         out[f"picker{p}_first_close_cm"] = math.nan if t is None else 100.0 * float(offset[t, p].norm())
+        out[f"picker{p}_first_close_height_cm"] = math.nan if t is None else 100.0 * float(offset[t, p, 2])
         out[f"picker{p}_first_close_step"] = math.nan if t is None else float(t)
         if offset_hat is not None:
             out[f"picker{p}_close_estimate_cm"] = math.nan if t is None else 100.0 * float(offset_hat[t, p].norm())
@@ -83,7 +86,7 @@ def summarize_grasps(task: str, reports: Sequence[dict[str, float | bool]]) -> s
     """One line over the episodes' :func:`grasp_report` s: the first closes farther than
     ``FAR_CLOSE_CM`` from their corner (and, for a policy that read an estimate, how many of those
     the estimate showed within that distance: the encoder's misses), the episodes with a source
-    corner never lifted, the median first-close step and the median placement."""
+    corner never lifted, the median first-close step and height and the median placement."""
     pickers = range(task_spec(task).num_pickers)
     closes = [(r[f"picker{p}_first_close_cm"], r.get(f"picker{p}_close_estimate_cm")) for r in reports for p in pickers]
     closed = [(d, e) for d, e in closes if not math.isnan(d)]
@@ -94,8 +97,11 @@ def summarize_grasps(task: str, reports: Sequence[dict[str, float | bool]]) -> s
         believed = f" ({sum(e <= FAR_CLOSE_CM for e in far)} of them within it in the estimate)"
     steps = [r[f"picker{p}_first_close_step"] for r in reports for p in pickers]
     steps = [s for s in steps if not math.isnan(s)]
+    heights = [r[f"picker{p}_first_close_height_cm"] for r in reports for p in pickers]
+    heights = [h for h in heights if not math.isnan(h)]
     placed = [r[f"picker{p}_placement_cm"] for r in reports for p in pickers]
-    when = f"median first close at step {statistics.median(steps):g}, " if steps else ""
+    when = (f"median first close at step {statistics.median(steps):g}, "
+            f"{statistics.median(heights):.1f} cm above its corner, " if steps else "")
     return (f"grasps: {len(far)} of {len(closed)} first closes farther than {FAR_CLOSE_CM:g} cm from their "
             f"corner{believed}; a source corner never lifted in {unlifted} of {len(reports)} episodes; "
             f"{when}source corners end {statistics.median(placed):.1f} cm from their targets (median)")
