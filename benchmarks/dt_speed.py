@@ -38,7 +38,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal
 from torchrl.objectives import OnlineDTLoss
 
-from trakdis.modules import DTActingPolicy, DTConfig, make_dt_actor
+from trakdis.modules import DTActingPolicy, DTModelConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 
 STATE_DIM, ACTION_DIM = 18, 8  # ClothFold
@@ -55,13 +55,13 @@ def sync(device):
 _HEAD = dict(dropout=0.1, attn_dropout=0.1, loc_bound=0.0, log_std_min=-5.0)
 
 
-def make_config(size: str, k: int) -> DTConfig:
+def make_config(size: str, k: int) -> DTModelConfig:
     if size == "paper":
-        return DTConfig.paper(STATE_DIM, ACTION_DIM, context_len=k, **_HEAD)
-    return DTConfig(STATE_DIM, ACTION_DIM, embed_dim=128, n_layer=3, n_head=4, context_len=k, **_HEAD)
+        return DTModelConfig.paper(STATE_DIM, ACTION_DIM, context_len=k, **_HEAD)
+    return DTModelConfig(STATE_DIM, ACTION_DIM, embed_dim=128, n_layer=3, n_head=4, context_len=k, **_HEAD)
 
 
-def make_torchrl_actor(cfg: DTConfig, device):
+def make_torchrl_actor(cfg: DTModelConfig, device):
     from torchrl.modules import DecisionTransformer, OnlineDTActor
 
     tcfg = DecisionTransformer.DTConfig(

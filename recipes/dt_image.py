@@ -29,7 +29,7 @@ from typing import Optional
 from trakdis.data import DataConfig, ensure_dataset, load_trajectories, make_buffer
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import EvalConfig
-from trakdis.modules import DTConfig
+from trakdis.modules import DTModelConfig
 from trakdis.modules.baselines import ImageTrunkConfig
 from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle, save_image_policy
@@ -51,7 +51,7 @@ class DTImageConfig(EvalConfig, OptimConfig, RunConfig):
     """image side"""
     trunk: ImageTrunkConfig = field(default_factory=ImageTrunkConfig)
     """CNN trunk"""
-    model: DTConfig = field(default_factory=DTConfig)
+    model: DTModelConfig = field(default_factory=DTModelConfig)
     """Decision Transformer (the teacher's defaults)"""
     updates: int = 1500
     """updates (the teacher's offline pretraining length)"""

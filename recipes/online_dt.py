@@ -21,7 +21,7 @@ from trakdis.data import DataConfig, expert_targets, offline_state_buffer
 from trakdis.envs import task_spec
 from trakdis.envs.specs import TaskName
 from trakdis.evaluation import EvalConfig, RunEnvs, compare_scores
-from trakdis.modules import DTConfig, make_dt_actor, recipe_hidden_action_dims
+from trakdis.modules import DTModelConfig, make_dt_actor, recipe_hidden_action_dims
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.optim import OptimConfig
 from trakdis.policies import PolicyHandle
@@ -44,7 +44,8 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     # 20 demonstrations, so that the online phase has something to add; a log-std floor of -1.5, so that DAgger's
     # grasp corrections do not swamp the clipped updates. The presets and the method's teacher keep 40 (200) and -2.5.
     data: DataConfig = field(default_factory=lambda: DataConfig(episodes=MAIN_JOB_EPISODES))  # expert dataset
-    model: DTConfig = field(default_factory=lambda: DTConfig(log_std_min=MAIN_JOB_LOG_STD_MIN))  # Decision Transformer
+    model: DTModelConfig = field(default_factory=lambda: DTModelConfig(log_std_min=MAIN_JOB_LOG_STD_MIN))
+    """Decision Transformer"""
     min_lr_fraction: float = 0.1  # cosine decay of --lr to this fraction by the end of pretraining (1: constant)
     online_lr: float | None = None  # constant lr of the online phase (default: the last offline one)
     batch_size: int = 64  # windows per update
@@ -98,7 +99,7 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
 
 
 PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule (Online DT's executed labels)
-    "model": {**DTConfig.PAPER_SIZES, "log_std_min": DTConfig.log_std_min}, "online_labels": "executed",
+    "model": {**DTModelConfig.PAPER_SIZES, "log_std_min": DTModelConfig.log_std_min}, "online_labels": "executed",
     "optimizer": "lamb", "lr": 1e-4, "weight_decay": 1e-4, "warmup_steps": 10000,
     "batch_size": 256, "data": {"episodes": 8000}, "offline_updates": 5000, "online_rounds": 1500, "episodes_per_round": 1,
     "updates_per_round": 300, "buffer_capacity": 1000, "buffer_replacement": "oldest", "min_lr_fraction": 1.0,
@@ -106,7 +107,7 @@ PRESETS = {"paper": {  # the paper's sizes, optimiser, data and online schedule 
     # the strongest teacher measured on a 2-core CPU (docs/recipes/online_dt.md): 5x the method teacher's 40
     # demonstrations, about as many passes over them (19 against 24), DAgger online, early stopping between the
     # offline and the final teacher
-    "cpu": {"data": {"episodes": 200}, "model": {"log_std_min": DTConfig.log_std_min}, "offline_updates": 6000,
+    "cpu": {"data": {"episodes": 200}, "model": {"log_std_min": DTModelConfig.log_std_min}, "offline_updates": 6000,
             "online_labels": "expert", "eval_episodes": 100, "select_episodes": 30, "select_every": 8}}
 
 

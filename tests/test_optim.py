@@ -3,7 +3,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from trakdis.modules import DTConfig, make_dt_actor
+from trakdis.modules import DTModelConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 from quadratic_loss import Quadratic
 from trakdis.optim import Lamb, Updater, make_optimizer, make_warmup_scheduler, mean_metrics
@@ -81,7 +81,7 @@ def test_updater_switches_to_a_constant_lr():
 
 
 def tiny_actor(key="state"):
-    cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(5, 2, horizon=10)
+    cfg = DTModelConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.0).for_task(5, 2, horizon=10)
     return cfg, make_dt_actor(cfg, observation_key=key)
 
 

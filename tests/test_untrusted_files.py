@@ -17,10 +17,10 @@ import pytest
 import torch
 
 from trakdis.data import DatasetError, load_expert_dataset
-from trakdis.modules import DTConfig, NormalizedEncoder, StateEncoder, make_dt_actor
+from trakdis.modules import DTModelConfig, NormalizedEncoder, StateEncoder, make_dt_actor
 from trakdis.policies import load_encoder, load_policy, save_encoder, save_policy
 from trakdis.utils import limits
-from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from trakdis.utils.checkpoint import FileFormatError, read_checkpoint, save_checkpoint
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 GROWTH_LIMIT_MB = 300  # peak resident memory a refused file may add
@@ -143,11 +143,11 @@ def test_symlink_out_of_the_dataset_is_refused(tmp_path):
 
 # --------------------------------------------------------------------------- policy and encoder files
 def tiny_policy(path, **changes):
-    cfg = DTConfig(embed_dim=8, n_layer=1, n_head=1, context_len=2).for_task(18, 8, horizon=5)
+    cfg = DTModelConfig(embed_dim=8, n_layer=1, n_head=1, context_len=2).for_task(18, 8, horizon=5)
     actor = make_dt_actor(cfg, observation_key="state")
     save_policy(path, kind="teacher", task="ClothFold", horizon=5, dt_config=cfg, actor=actor,
                 observation_key="state", target_return=-1.0, rtg_scale=1.0)
-    data = load_checkpoint(path)
+    data = read_checkpoint(path)
     for key, value in changes.items():
         if key.startswith("dt_config."):
             data["dt_config"][key.split(".", 1)[1]] = value
@@ -161,7 +161,7 @@ def tiny_policy(path, **changes):
 def tiny_encoder(path, **changes):
     enc = NormalizedEncoder(StateEncoder(18, channels=(2, 2, 2, 2), hidden_dim=4), torch.zeros(18), torch.ones(18))
     save_encoder(path, enc, task="ClothFold")
-    data = load_checkpoint(path)
+    data = read_checkpoint(path)
     data.pop("format")
     for key, value in changes.items():
         if key.startswith("encoder_kwargs."):
@@ -178,7 +178,7 @@ def test_absurd_policy_sizes_are_refused_before_allocation(tmp_path, field, valu
     """Failure 2: the sizes of a policy file's dt_config were allocated before any check."""
     path = tiny_policy(tmp_path / "policy.pt", **{f"dt_config.{field}": value})
     before = snapshot(tmp_path)
-    with pytest.raises(CheckpointError, match=rf"policy.pt: dt_config.*({field}|parameters|activations)"):
+    with pytest.raises(FileFormatError, match=rf"policy.pt: dt_config.*({field}|parameters|activations)"):
         load_policy(path)
     assert snapshot(tmp_path) == before
 
@@ -187,19 +187,19 @@ def test_absurd_policy_sizes_are_refused_before_allocation(tmp_path, field, valu
                                     {"encoder_kwargs.hidden_dim": 10**7}])
 def test_absurd_encoder_sizes_are_refused_before_allocation(tmp_path, change):
     path = tiny_encoder(tmp_path / "encoder.pt", **change)
-    with pytest.raises(CheckpointError, match=r"encoder.pt.*(members|parameters)"):
+    with pytest.raises(FileFormatError, match=r"encoder.pt.*(members|parameters)"):
         load_encoder(path)
 
 
 def test_the_parameter_limit_can_be_raised(tmp_path):
     path = tiny_policy(tmp_path / "policy.pt")
-    with pytest.raises(CheckpointError, match=r"above the parameter limit .*--max-params"):
+    with pytest.raises(FileFormatError, match=r"above the parameter limit .*--max-params"):
         load_policy(path, max_params=100)
-    with pytest.raises(CheckpointError, match=r"a model of [\d,]+ parameters, more than the limit of 2,000 .*--max-params"):
+    with pytest.raises(FileFormatError, match=r"a model of [\d,]+ parameters, more than the limit of 2,000 .*--max-params"):
         load_policy(path, max_params=2000)
     assert load_policy(path, max_params=10**6).kind == "teacher"
     enc = tiny_encoder(tmp_path / "encoder.pt")
-    with pytest.raises(CheckpointError, match="more than the limit of 100"):
+    with pytest.raises(FileFormatError, match="more than the limit of 100"):
         load_encoder(enc, max_params=100)
     assert load_encoder(enc, max_params=10**6)[1]["kind"] == "encoder"
 
@@ -207,7 +207,7 @@ def test_the_parameter_limit_can_be_raised(tmp_path):
 def test_zip_bomb_and_unknown_entries_are_refused(tmp_path):
     """Failure 3: an unused, highly compressed extra tensor was unpacked on load."""
     path = tiny_policy(tmp_path / "policy.pt")
-    data = load_checkpoint(path)
+    data = read_checkpoint(path)
     data["payload"] = torch.zeros(10_000_000)  # 40 MB of zeros: a few kB compressed
     buffer = io.BytesIO()
     torch.save(data, buffer)
@@ -216,11 +216,11 @@ def test_zip_bomb_and_unknown_entries_are_refused(tmp_path):
         for info in src.infolist():
             dst.writestr(info.filename, src.read(info.filename))
     assert (tmp_path / "bomb.pt").stat().st_size < 1_000_000
-    with pytest.raises(CheckpointError, match=r"bomb.pt unpacks to \d+ bytes .* compressed archive bomb"):
+    with pytest.raises(FileFormatError, match=r"bomb.pt unpacks to \d+ bytes .* compressed archive bomb"):
         load_policy(tmp_path / "bomb.pt")
     data["payload"] = torch.zeros(3)  # stored plainly: an entry trakdis never writes
     save_checkpoint(tmp_path / "extra.pt", {k: v for k, v in data.items() if k != "format"})
-    with pytest.raises(CheckpointError, match=r"extra.pt: unknown entries \['payload'\]"):
+    with pytest.raises(FileFormatError, match=r"extra.pt: unknown entries \['payload'\]"):
         load_policy(tmp_path / "extra.pt")
     with pytest.raises(ValueError, match="payload"):  # and the savers write none
         save_encoder(tmp_path / "e.pt", NormalizedEncoder(StateEncoder(18, channels=(2, 2, 2, 2), hidden_dim=4),
@@ -238,7 +238,7 @@ def test_zip_bomb_and_unknown_entries_are_refused(tmp_path):
 def test_env_kwargs_outside_the_allow_list_are_refused(tmp_path, env_kwargs, match):
     """Failure 4: a policy's env_kwargs turned a 5-step evaluation into hours, and overrode --horizon."""
     path = tiny_policy(tmp_path / "policy.pt", env_kwargs=env_kwargs)
-    with pytest.raises(CheckpointError, match=match):
+    with pytest.raises(FileFormatError, match=match):
         load_policy(path)
 
 
@@ -271,7 +271,7 @@ def test_the_horizon_wins_over_env_kwargs(tmp_path):
     ({"proprio_dims": "abc"}, "'proprio_dims' must be"), ({"kind": torch.zeros(2)}, "'kind' must be a name")])
 def test_malformed_policy_fields_name_the_file(tmp_path, change, match):
     path = tiny_policy(tmp_path / "policy.pt", **change)
-    with pytest.raises(CheckpointError, match=rf"policy.pt.*{match}"):
+    with pytest.raises(FileFormatError, match=rf"policy.pt.*{match}"):
         load_policy(path)
 
 
@@ -285,19 +285,19 @@ def test_malformed_policy_fields_name_the_file(tmp_path, change, match):
      "activations")])
 def test_malformed_encoder_fields_name_the_file(tmp_path, change, match):
     path = tiny_encoder(tmp_path / "encoder.pt", **change)
-    with pytest.raises(CheckpointError, match=rf"encoder.pt.*{match}"):
+    with pytest.raises(FileFormatError, match=rf"encoder.pt.*{match}"):
         load_encoder(path)
 
 
 def test_random_bytes_and_a_fifo_as_checkpoints(tmp_path):
     (tmp_path / "random.pt").write_bytes(np.random.default_rng(0).bytes(4096))
-    with pytest.raises(CheckpointError, match="random.pt is not a valid checkpoint"):
+    with pytest.raises(FileFormatError, match="random.pt is not a valid checkpoint"):
         load_policy(tmp_path / "random.pt")
     os.mkfifo(tmp_path / "fifo.pt")
-    with pytest.raises(CheckpointError, match=r"fifo.pt is not a regular file \(a FIFO\)"):
+    with pytest.raises(FileFormatError, match=r"fifo.pt is not a regular file \(a FIFO\)"):
         load_policy(tmp_path / "fifo.pt")
-    with pytest.raises(CheckpointError, match="missing.pt does not exist"):
-        load_checkpoint(tmp_path / "missing.pt")
+    with pytest.raises(FileFormatError, match="missing.pt does not exist"):
+        read_checkpoint(tmp_path / "missing.pt")
 
 
 # --------------------------------------------------------------------------- workers and options
@@ -427,12 +427,12 @@ def test_a_checkpoint_of_another_recipe_is_refused_on_resume(tmp_path):
     other.mkdir(parents=True)
     for name in ("config.json", "checkpoint.pt"):
         (other / name).write_bytes((run.dir / name).read_bytes())
-    with pytest.raises(CheckpointError, match="checkpoint.pt is a checkpoint of train_encoder, not of online_dt"):
+    with pytest.raises(FileFormatError, match="checkpoint.pt is a checkpoint of train_encoder, not of online_dt"):
         Run.start("online_dt", Cfg, ["--root", str(tmp_path), "--name", "x", "--resume"])
     # a checkpoint of the recipe that lacks its counters names the file
     save_checkpoint(run.dir / "checkpoint.pt", {"step": 0, "recipe": "train_encoder"})
     resumed = Run.start("train_encoder", Cfg, ["--root", str(tmp_path), "--name", "x", "--resume"])
-    with pytest.raises(CheckpointError, match="checkpoint.pt has no 'counters' entry"):
+    with pytest.raises(FileFormatError, match="checkpoint.pt has no 'counters' entry"):
         RunState(resumed, {"epoch": 0}, step_key="epoch")
     resumed.finish()
 

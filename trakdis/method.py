@@ -28,8 +28,8 @@ TEACHER_ARGS = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
 weights act on an encoder's estimates (docs/recipes/distill.md)"""
 MAIN_JOB_RESETS = "--data.episodes 40 --model.log-std-min -2.5 --online-labels executed"
 """recipes/online_dt.py's main-job defaults that the teacher stage resets, before ``TEACHER_ARGS`` or a caller's: the
-encoder's 40 demonstrations (one dataset for both stages), DTConfig's log-std floor, Online DT's labels. Not when the
-caller names a ``--preset``: every preset sets these itself, and explicit flags would override it."""
+encoder's 40 demonstrations (one dataset for both stages), DTModelConfig's log-std floor, Online DT's labels. Not when
+the caller names a ``--preset``: every preset sets these itself, and explicit flags would override it."""
 ENCODER_ARGS = "--extra-noise 0.5 --members 3 --select-episodes 30"
 """recipes/train_encoder.py: noisy-expert images added to training; three encoders trained side by side, the
 one whose weight copy folds best on 30 train-split episodes kept (which draw the copy gets was the largest

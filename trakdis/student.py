@@ -21,12 +21,12 @@ from torch import nn
 
 from trakdis.envs import close_env, task_spec
 from trakdis.evaluation import EpisodeStream, episode_score, race_survivors, run_episodes
-from trakdis.modules import DTConfig, NormalizedEncoder, copy_teacher_weights, make_dt_actor
+from trakdis.modules import DTModelConfig, NormalizedEncoder, copy_teacher_weights, make_dt_actor
 from trakdis.policies import PolicyHandle, load_encoder, load_teacher
 from trakdis.transforms.normalization import normalizer_parts, normalizer_with_keys
 from trakdis.transforms.visibility import OutOfViewFill
 from trakdis.utils import limits
-from trakdis.utils.checkpoint import load_checkpoint
+from trakdis.utils.checkpoint import read_checkpoint
 from trakdis.utils.logger import latest_run_file
 
 __all__ = [
@@ -42,7 +42,7 @@ __all__ = [
 def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_copy: bool = True,
                           normalizer_keys: tuple[str, ...] = ("state_estimate",), proprio_dims: tuple = (),
                           picker_odometry: bool = False, device: str = "cpu") -> tuple[PolicyHandle, Any]:
-    """The TraKDis student of a loaded ``teacher`` and its :class:`~trakdis.modules.DTConfig`.
+    """The TraKDis student of a loaded ``teacher`` and its :class:`~trakdis.modules.DTModelConfig`.
 
     A DT of the teacher's sizes reading ``"state_estimate"`` (``encoder``'s estimate from the
     image, run in the acting env), starting as a copy of the teacher's weights (``weight_copy``;
@@ -50,7 +50,7 @@ def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_c
     (a normaliser of ``normalizer_keys``); ``proprio_dims``: dims of the estimate taken from the
     true state when acting; ``picker_odometry``: the estimate's pickers fused with the student's own
     commands (``PickerOdometry``) when acting."""
-    dt_cfg = DTConfig(**load_checkpoint(teacher.source)["dt_config"])
+    dt_cfg = DTModelConfig(**read_checkpoint(teacher.source)["dt_config"])
     student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=device)
     if weight_copy:
         copy_teacher_weights(student, teacher.actor)

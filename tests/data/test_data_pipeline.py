@@ -5,7 +5,7 @@ import torch
 
 from trakdis.data import TrajectoryReplayBuffer, collect_expert_dataset, load_expert_dataset
 from trakdis.envs import task_spec
-from trakdis.modules import DTConfig, StateEncoder, make_dt_actor
+from trakdis.modules import DTModelConfig, StateEncoder, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 from trakdis.transforms import EncoderTransform
 
@@ -25,7 +25,7 @@ def test_dataset_buffer_encoder_dt_loss(tmp_path):
     batch = rb.sample(6)
     assert batch["state_estimate"].shape == (6, 3, spec.state_dim)
     assert batch["timestep"].max() < 5 and batch["mask"][:, -1].all()
-    cfg = DTConfig(state_dim=spec.state_dim, action_dim=spec.action_dim, embed_dim=16, n_layer=1, n_head=2, context_len=3)
+    cfg = DTModelConfig(state_dim=spec.state_dim, action_dim=spec.action_dim, embed_dim=16, n_layer=1, n_head=2, context_len=3)
     for key in ("state", "state_estimate"):  # teacher and student observation keys
         loss = MaskedOnlineDTLoss(make_dt_actor(cfg, observation_key=key), lambda_entropy=0.1)
         out = loss(batch.clone())

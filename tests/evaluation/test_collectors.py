@@ -157,13 +157,13 @@ def test_worker_env_fns_rebuild_the_sub_envs_with_the_transforms():
 def _tiny_teacher(horizon):
     from trakdis.envs import task_spec
     from trakdis.modules import make_dt_actor
-    from trakdis.modules import DTConfig
+    from trakdis.modules import DTModelConfig
     from trakdis.policies import PolicyHandle
     from torchrl.envs import ObservationNorm
 
     torch.manual_seed(0)
     spec = task_spec("ClothFold", horizon=horizon)
-    dt_cfg = DTConfig(embed_dim=16, n_layer=1, n_head=1, context_len=3).for_task(spec.state_dim, spec.action_dim, horizon)
+    dt_cfg = DTModelConfig(embed_dim=16, n_layer=1, n_head=1, context_len=3).for_task(spec.state_dim, spec.action_dim, horizon)
     actor = make_dt_actor(dt_cfg, observation_key="state")
     normalizer = ObservationNorm(torch.zeros(spec.state_dim), torch.full((spec.state_dim,), 0.1), in_keys=["state"],
                                  standard_normal=True)

@@ -4,7 +4,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from trakdis.modules import (BCConfig, DTActingPolicy, DTConfig, ImageTrunk, ImageTrunkConfig, make_bc_actor,
+from trakdis.modules import (BCConfig, DTActingPolicy, DTModelConfig, ImageTrunk, ImageTrunkConfig, make_bc_actor,
                              make_dt_actor, with_image_trunk)
 from trakdis.objectives import BehaviourCloningLoss, MaskedOnlineDTLoss
 
@@ -114,8 +114,8 @@ def _window(b, k, action_dim, seed=0):
 def test_dt_image_trains_end_to_end():
     torch.manual_seed(0)
     trunk = ImageTrunk(8, pad=1, **SMALL)
-    cfg = DTConfig(state_dim=8, action_dim=4, embed_dim=16, n_layer=1, n_head=1, context_len=3, dropout=0.0,
-                   attn_dropout=0.0, loc_bound=5.0)
+    cfg = DTModelConfig(state_dim=8, action_dim=4, embed_dim=16, n_layer=1, n_head=1, context_len=3, dropout=0.0,
+                        attn_dropout=0.0, loc_bound=5.0)
     head = make_dt_actor(cfg, observation_key="image_features")
     actor = with_image_trunk(head, trunk)
     assert actor.in_keys[0] == "pixels" and "image_features" not in actor.in_keys
@@ -139,7 +139,7 @@ def test_dt_image_acting_on_env_features_equals_the_training_actor():
     training actor computes on the window of images (the CNN reads each frame on its own)."""
     torch.manual_seed(0)
     trunk = ImageTrunk(8, **SMALL).eval()
-    cfg = DTConfig(state_dim=8, action_dim=4, embed_dim=16, n_layer=1, n_head=1, context_len=3)
+    cfg = DTModelConfig(state_dim=8, action_dim=4, embed_dim=16, n_layer=1, n_head=1, context_len=3)
     head = make_dt_actor(cfg, observation_key="image_features").eval()
     actor = with_image_trunk(head, trunk).eval()
     policy = DTActingPolicy(head)

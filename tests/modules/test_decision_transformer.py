@@ -4,7 +4,7 @@ from dt_windows import random_window
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import TanhNormal
 
-from trakdis.modules import (CausalTransformer, DTBackbone, StochasticDTActor, DTConfig, TransformerConfig, make_dt_actor,
+from trakdis.modules import (CausalTransformer, DTBackbone, StochasticDTActor, DTModelConfig, TransformerConfig, make_dt_actor,
                              recipe_hidden_action_dims)
 
 S, A = 5, 3
@@ -12,7 +12,7 @@ S, A = 5, 3
 
 def small_config(**kw):
     kw.setdefault("context_len", 6)
-    return DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, **kw)
+    return DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, **kw)
 
 
 def window(b=4, k=6, *, generator=None, pad=None):
@@ -24,20 +24,20 @@ def run(dt, td):
 
 
 def test_config_presets_and_validation():
-    c = DTConfig.paper(18, 8)
+    c = DTModelConfig.paper(18, 8)
     assert (c.embed_dim, c.n_layer, c.n_head, c.context_len, c.max_timestep) == (256, 10, 16, 30, 1024)
-    assert DTConfig.paper(18, 8, context_len=5).context_len == 5
-    d = DTConfig(18, 8)
+    assert DTModelConfig.paper(18, 8, context_len=5).context_len == 5
+    d = DTModelConfig(18, 8)
     assert (d.embed_dim, d.n_layer, d.n_head, d.context_len, d.dropout, d.loc_bound, d.log_std_min) == (64, 2, 2, 20, 0.0, 5.0, -2.5)
     with pytest.raises(ValueError, match="divisible"):
-        DTConfig(18, 8, embed_dim=30, n_head=4)
+        DTModelConfig(18, 8, embed_dim=30, n_head=4)
     with pytest.raises(ValueError, match="log_std_min"):
-        DTConfig(18, 8, log_std_min=2.0, log_std_max=-5.0)
+        DTModelConfig(18, 8, log_std_min=2.0, log_std_max=-5.0)
     with pytest.raises(ValueError, match="activation"):
         TransformerConfig(embed_dim=16, n_layer=1, n_head=2, activation="swish")
     with pytest.raises(ValueError, match="loc_bound"):
-        DTConfig(18, 8, loc_bound=-1.0)
-    assert DTConfig(18, 8, loc_bound=0.0).action_eps == 1e-6 and abs(DTConfig(18, 8, loc_bound=5.0).action_eps - 9.08e-5) < 1e-7
+        DTModelConfig(18, 8, loc_bound=-1.0)
+    assert DTModelConfig(18, 8, loc_bound=0.0).action_eps == 1e-6 and abs(DTModelConfig(18, 8, loc_bound=5.0).action_eps - 9.08e-5) < 1e-7
 
 
 def test_shapes_and_extra_batch_dims():
@@ -109,17 +109,17 @@ def test_hidden_action_dims_are_not_read_and_the_others_are():
 
 
 def test_hidden_action_dims_config():
-    assert DTConfig(18, 8).hidden_action_dims is None  # a DT built directly hides nothing
-    assert DTConfig(18, 8, hidden_action_dims=[3, 7]).hidden_action_dims == (3, 7)  # e.g. from config.json
+    assert DTModelConfig(18, 8).hidden_action_dims is None  # a DT built directly hides nothing
+    assert DTModelConfig(18, 8, hidden_action_dims=[3, 7]).hidden_action_dims == (3, 7)  # e.g. from config.json
     for bad in ((8,), (-1,), (3, 3)):
         with pytest.raises(ValueError, match="hidden_action_dims"):
-            DTConfig(18, 8, hidden_action_dims=bad)
+            DTModelConfig(18, 8, hidden_action_dims=bad)
     # the recipes fill in the task's grasp dims unless the config sets its own (empty: none)
-    assert DTConfig().for_task(18, 8, 100, hidden_action_dims=(3, 7)).hidden_action_dims == (3, 7)
-    assert DTConfig(hidden_action_dims=()).for_task(18, 8, 100, hidden_action_dims=(3, 7)).hidden_action_dims == ()
-    assert DTConfig().for_task(18, 8, 100).hidden_action_dims == ()
+    assert DTModelConfig().for_task(18, 8, 100, hidden_action_dims=(3, 7)).hidden_action_dims == (3, 7)
+    assert DTModelConfig(hidden_action_dims=()).for_task(18, 8, 100, hidden_action_dims=(3, 7)).hidden_action_dims == ()
+    assert DTModelConfig().for_task(18, 8, 100).hidden_action_dims == ()
     with pytest.raises(ValueError, match="hidden_action_dims"):
-        DTConfig(hidden_action_dims=(3, 7)).for_task(15, 4, 100)
+        DTModelConfig(hidden_action_dims=(3, 7)).for_task(15, 4, 100)
     # the recipes' default: ClothFold's grasp commands; none on the diagonal folds
     assert recipe_hidden_action_dims("ClothFold") == (3, 7)
     assert recipe_hidden_action_dims("ClothFoldDiagonalPinned") == recipe_hidden_action_dims("ClothFoldDiagonalUnpinned") == ()

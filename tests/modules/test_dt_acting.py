@@ -3,7 +3,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from trakdis.modules import DTActingPolicy, DTConfig, make_dt_actor
+from trakdis.modules import DTActingPolicy, DTModelConfig, make_dt_actor
 
 S, A, K = 5, 3, 4
 
@@ -11,7 +11,7 @@ S, A, K = 5, 3, 4
 @pytest.fixture(scope="module")
 def actor():
     torch.manual_seed(0)
-    cfg = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, max_timestep=64)
+    cfg = DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, max_timestep=64)
     return make_dt_actor(cfg, observation_key="state").eval()
 
 
@@ -184,8 +184,8 @@ def test_hidden_action_dims_act_as_in_training(mode):
     # the acting context keeps the policy's own actions; the hidden dims of them are left out of the
     # tokens in acting (both modes) as in the training forward
     torch.manual_seed(0)
-    cfg = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, max_timestep=64,
-                   hidden_action_dims=(2,))
+    cfg = DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, max_timestep=64,
+                        hidden_action_dims=(2,))
     hidden_actor = make_dt_actor(cfg, observation_key="state").eval()
     policy = DTActingPolicy(hidden_actor, mode=mode)
     with set_exploration_type(ExplorationType.DETERMINISTIC):

@@ -136,8 +136,8 @@ def test_encoder_ensemble_file_round_trip(tmp_path):
 
 def test_encoder_ensemble_file_with_a_bad_member_count_is_refused(tmp_path):
     from trakdis.policies import encoder_from_dict
-    from trakdis.utils.checkpoint import CheckpointError
+    from trakdis.utils.checkpoint import FileFormatError
 
     data = {"kind": "encoder", "encoder_kwargs": {"state_dim": 18}, "state_dict": {}, "ensemble": {"members": 0}}
-    with pytest.raises(CheckpointError, match="'members' >= 1"):
+    with pytest.raises(FileFormatError, match="'members' >= 1"):
         encoder_from_dict(data)

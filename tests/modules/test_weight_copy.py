@@ -2,13 +2,13 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from trakdis.modules import DTConfig, StateEncoder, copy_teacher_weights, make_dt_actor
+from trakdis.modules import DTModelConfig, StateEncoder, copy_teacher_weights, make_dt_actor
 
 
 def cfg(**kw):
     base = dict(state_dim=5, action_dim=3, embed_dim=32, n_layer=2, n_head=4, context_len=4)
     base.update(kw)
-    return DTConfig(**base)
+    return DTModelConfig(**base)
 
 
 def test_round_trip_teacher_to_student():

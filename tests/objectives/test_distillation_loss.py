@@ -2,14 +2,14 @@ import pytest
 import torch
 from dt_windows import random_window
 
-from trakdis.modules import DTConfig, StateEncoder, copy_teacher_weights, find_dt_actor, make_dt_actor
+from trakdis.modules import DTModelConfig, StateEncoder, copy_teacher_weights, find_dt_actor, make_dt_actor
 from trakdis.objectives import DistillationLoss
 
 S, A, B, K = 5, 3, 3, 4
 
 
 def cfg():
-    return DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
+    return DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
 
 
 @pytest.fixture
@@ -128,7 +128,7 @@ def test_set_keys_and_errors(actors):
 
 def test_teacher_targets_are_deterministic_even_if_teacher_is_in_train_mode():
     torch.manual_seed(0)
-    c = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.5, attn_dropout=0.5)
+    c = DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.5, attn_dropout=0.5)
     teacher = make_dt_actor(c, observation_key="state").train()
     student = make_dt_actor(c, observation_key="state_estimate").eval()
     loss = DistillationLoss(student, teacher)
@@ -155,8 +155,8 @@ def test_mse_ignores_a_gap_the_actions_do_not_show():
     """Where both policies saturate, a pre-tanh gap changes no action: the NLL still charges it
     (in units of the student's std), the action-space squared error does not."""
     torch.manual_seed(0)
-    c = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0,
-                 attn_dropout=0.0, loc_bound=5.0, log_std_min=-2.5)
+    c = DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0,
+                      attn_dropout=0.0, loc_bound=5.0, log_std_min=-2.5)
     teacher = make_dt_actor(c, observation_key="state")
     student = make_dt_actor(c, observation_key="state_estimate")
     td = window(pad=(0, 0, 0))

@@ -3,7 +3,7 @@ import torch
 from dt_windows import random_window
 from torchrl.objectives import OnlineDTLoss
 
-from trakdis.modules import DTConfig, make_dt_actor
+from trakdis.modules import DTModelConfig, make_dt_actor
 from trakdis.objectives import MaskedOnlineDTLoss
 
 S, A, B, K = 5, 3, 4, 6
@@ -12,7 +12,7 @@ S, A, B, K = 5, 3, 4, 6
 @pytest.fixture
 def actor():
     torch.manual_seed(0)
-    cfg = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
+    cfg = DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
     return make_dt_actor(cfg)
 
 
@@ -167,7 +167,7 @@ def test_other_distributions_use_the_generic_path():
     from trakdis.modules.decision_transformer import StochasticDTActor
 
     torch.manual_seed(0)
-    cfg = DTConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
+    cfg = DTModelConfig(state_dim=S, action_dim=A, embed_dim=32, n_layer=2, n_head=4, context_len=K, dropout=0.0, attn_dropout=0.0)
     module = TensorDictModule(StochasticDTActor(cfg), in_keys=["observation", "action", "return_to_go", "timestep", "mask"], out_keys=["loc", "scale"])
     actor = ProbabilisticActor(
         module, in_keys=["loc", "scale"], out_keys=["action"], spec=Bounded(-2.0, 2.0, shape=(A,)),
@@ -189,8 +189,8 @@ def test_own_saturated_mean_actions_as_targets(loc_bound):
     # Online fine-tuning writes the policy's own mean actions back as targets. A grasp command the
     # policy is sure of has a large pre-tanh mean and the smallest std; unbounded, its action
     # rounds to +-1.0 in float32, is clamped to atanh(1 - 1e-6) = 7.25 and costs a huge NLL.
-    cfg = DTConfig(state_dim=4, action_dim=2, embed_dim=16, n_layer=1, n_head=2, context_len=3, dropout=0.0,
-                   attn_dropout=0.0, loc_bound=loc_bound)
+    cfg = DTModelConfig(state_dim=4, action_dim=2, embed_dim=16, n_layer=1, n_head=2, context_len=3, dropout=0.0,
+                        attn_dropout=0.0, loc_bound=loc_bound)
     actor = make_dt_actor(cfg)
     dt = actor.module[0].module
     with torch.no_grad():

@@ -5,7 +5,7 @@ from tiny_policies import tiny_actor
 
 from trakdis.modules import NormalizedEncoder, StateEncoder
 from trakdis.policies import PolicyHandle, load_encoder, load_policy, load_teacher, save_encoder, save_policy
-from trakdis.utils.checkpoint import CheckpointError, save_checkpoint
+from trakdis.utils.checkpoint import FileFormatError, save_checkpoint
 
 
 def test_policy_and_encoder_files(tmp_path):
@@ -26,28 +26,28 @@ def test_policy_and_encoder_files(tmp_path):
     enc2, data = load_encoder(tmp_path / "encoder.pt")
     px = torch.randint(0, 255, (2, 32, 32, 3), dtype=torch.uint8)
     assert torch.allclose(enc.eval()(px), enc2(px))
-    with pytest.raises(CheckpointError, match="teacher"):
+    with pytest.raises(FileFormatError, match="teacher"):
         load_encoder(tmp_path / "policy.pt")
     with pytest.raises(ValueError, match="is for ClothFold, not ClothFoldDiagonalUnpinned"):
         load_encoder(tmp_path, task="ClothFoldDiagonalUnpinned")
     assert load_teacher(tmp_path, task="ClothFoldDiagonalPinned", horizon=10).kind == "teacher"
     for kw in ({"task": "ClothFold"}, {"horizon": 5}):
-        with pytest.raises(CheckpointError, match="expected a teacher"):
+        with pytest.raises(FileFormatError, match="expected a teacher"):
             load_teacher(tmp_path, **kw)
     save_policy(tmp_path / "student.pt", kind="student", task="ClothFold", horizon=10, dt_config=cfg, actor=actor,
                 observation_key="state", target_return=-1.0, rtg_scale=1.0, encoder_file=data)
-    with pytest.raises(CheckpointError, match="a student for ClothFold .*expected a teacher$"):
+    with pytest.raises(FileFormatError, match="a student for ClothFold .*expected a teacher$"):
         load_teacher(tmp_path / "student.pt")
     save_checkpoint(tmp_path / "bad.pt", {"kind": "encoder", "task": "ClothFold", "dt_config": {}, "actor": {},
                                           "observation_key": "state"})
-    with pytest.raises(CheckpointError, match="not a policy"):
+    with pytest.raises(FileFormatError, match="not a policy"):
         load_policy(tmp_path / "bad.pt")
 
 
 def test_image_networks_of_another_rendering_are_refused(tmp_path, monkeypatch):
     import trakdis.envs.model
     from trakdis.envs import render_version
-    from trakdis.utils.checkpoint import load_checkpoint
+    from trakdis.utils.checkpoint import read_checkpoint
 
     task = "ClothFoldDiagonalUnpinned"
     enc = NormalizedEncoder(StateEncoder(15, channels=(4, 4, 4, 4), hidden_dim=8), torch.zeros(15), torch.ones(15))
@@ -59,21 +59,21 @@ def test_image_networks_of_another_rendering_are_refused(tmp_path, monkeypatch):
                 observation_key="state_estimate", target_return=-1.0, rtg_scale=1.0, encoder_file=data)
     assert load_policy(tmp_path / "student.pt").encoder is not None
     # an encoder file from before the unpinned fold's wider camera (no version recorded: version 2)
-    old = {k: v for k, v in load_checkpoint(tmp_path / "encoder.pt").items() if k != "render_version"}
+    old = {k: v for k, v in read_checkpoint(tmp_path / "encoder.pt").items() if k != "render_version"}
     save_checkpoint(tmp_path / "old.pt", old)
-    with pytest.raises(CheckpointError, match=f"old.pt: .*rendering version 2; this trakdis renders {task} at version 3"):
+    with pytest.raises(FileFormatError, match=f"old.pt: .*rendering version 2; this trakdis renders {task} at version 3"):
         load_encoder(tmp_path / "old.pt")
     # the task's rendering changes after the files were written: encoder and student are both refused
     monkeypatch.setitem(trakdis.envs.model.RENDER_VERSIONS, task, render_version(task) + 1)
-    with pytest.raises(CheckpointError, match="encoder.pt: .*version 3; this trakdis renders .* at version 4"):
+    with pytest.raises(FileFormatError, match="encoder.pt: .*version 3; this trakdis renders .* at version 4"):
         load_encoder(tmp_path / "encoder.pt")
-    with pytest.raises(CheckpointError, match=r"student.pt \(its encoder\): .*version 3"):
+    with pytest.raises(FileFormatError, match=r"student.pt \(its encoder\): .*version 3"):
         load_policy(tmp_path / "student.pt")
 
 
 def test_handle_save_writes_what_save_policy_writes(tmp_path):
     from trakdis.transforms import state_normalizer
-    from trakdis.utils.checkpoint import load_checkpoint
+    from trakdis.utils.checkpoint import read_checkpoint
 
     cfg, actor = tiny_actor("state_estimate")
     norm = state_normalizer(torch.zeros(5), torch.full((5,), 2.0), keys=("state", "state_estimate"))
@@ -82,7 +82,7 @@ def test_handle_save_writes_what_save_policy_writes(tmp_path):
     extra = {"encoder_file": {"task": "ClothFold"}, "extra": {"weight_copy": False}}
     save_policy(tmp_path / "a.pt", dt_config=cfg, **fields, **extra)
     PolicyHandle(**fields).save(tmp_path / "b.pt", cfg, **extra)
-    a, b = load_checkpoint(tmp_path / "a.pt"), load_checkpoint(tmp_path / "b.pt")
+    a, b = read_checkpoint(tmp_path / "a.pt"), read_checkpoint(tmp_path / "b.pt")
     assert a.keys() == b.keys() and b["weight_copy"] is False and b["env_kwargs"] == {"picker_size": 0.03}
     for k in a:
         if k in ("actor", "normalizer"):

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from trakdis.utils.checkpoint import FileFormatError, read_checkpoint, save_checkpoint
 from trakdis.evaluation import run_episodes
 from trakdis.envs import close_env
 from trakdis.policies import load_policy
@@ -73,20 +73,20 @@ def test_image_policy_file_errors(workdir, tmp_path):
     path = workdir / "runs" / "bc_image" / "bc" / "policy.pt"
     if not path.exists():
         pytest.skip("needs test_bc_image_trains_saves_and_evaluates")
-    data = load_checkpoint(path)
+    data = read_checkpoint(path)
     bad = {k: v for k, v in data.items() if k != "trunk"}
     save_checkpoint(tmp_path / "no_trunk.pt", bad)
-    with pytest.raises(CheckpointError, match=r"lacks \['trunk'\]"):
+    with pytest.raises(FileFormatError, match=r"lacks \['trunk'\]"):
         load_policy(tmp_path / "no_trunk.pt")
     wrong = dict(data, trunk_config={**data["trunk_config"], "feature_dim": 9})
     save_checkpoint(tmp_path / "wrong.pt", wrong)
-    with pytest.raises(CheckpointError, match="trunk does not match"):
+    with pytest.raises(FileFormatError, match="trunk does not match"):
         load_policy(tmp_path / "wrong.pt")
     with pytest.raises(ValueError, match="ClothFold policy, but task"):
         load_policy(path, task="ClothFoldDiagonalPinned")
     assert data["render_version"] == 2  # its CNN learnt ClothFold's images; another rendering is refused
     save_checkpoint(tmp_path / "older.pt", dict(data, render_version=1))
-    with pytest.raises(CheckpointError, match="rendering version 1; this trakdis renders ClothFold at version 2"):
+    with pytest.raises(FileFormatError, match="rendering version 1; this trakdis renders ClothFold at version 2"):
         load_policy(tmp_path / "older.pt")
 
 
@@ -178,8 +178,8 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert json.loads((workdir / "runs" / "train_encoder" / "t1-ClothFold-s0-encoder-noaug" / "config.json").read_text())["aug"] is False
         # the test-time flip is an augmentation too: the No-Aug encoder reads the image once, the full method's twice
         encoders = workdir / "runs" / "train_encoder"
-        assert load_checkpoint(encoders / "t1-ClothFold-s0-encoder-noaug" / "encoder.pt")["ensemble"] is None
-        assert load_checkpoint(encoders / "t1-ClothFold-s0-encoder" / "encoder.pt")["ensemble"]["state_mirror"] is not None
+        assert read_checkpoint(encoders / "t1-ClothFold-s0-encoder-noaug" / "encoder.pt")["ensemble"] is None
+        assert read_checkpoint(encoders / "t1-ClothFold-s0-encoder" / "encoder.pt")["ensemble"]["state_mirror"] is not None
         capsys.readouterr()
         again = bench.main(["--name", "t1", "--resume"])
         assert "run directory:" not in capsys.readouterr().out  # no stage ran again

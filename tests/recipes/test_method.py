@@ -21,7 +21,7 @@ def test_stage_args_parse_in_their_recipes_with_the_methods_defaults():
     teacher = parse_config(load_recipe("online_dt").OnlineDTConfig, teacher_stage_args("ClothFoldDiagonalPinned"))
     assert (teacher.task, teacher.collect_pixels, teacher.eval_episodes) == ("ClothFoldDiagonalPinned", True, 0)
     assert (teacher.state_noise, teacher.state_scale_floor, teacher.online_rounds) == (0.01, 0.02, 0)
-    # not the main job's (online_dt.py's defaults): the encoder's 40 demonstrations, DTConfig's log-std floor
+    # not the main job's (online_dt.py's defaults): the encoder's 40 demonstrations, DTModelConfig's log-std floor
     assert (teacher.data.episodes, teacher.model.log_std_min, teacher.online_labels) == (40, -2.5, "executed")
     online_dt = load_recipe("online_dt")
     for preset in ("--preset cpu", "--preset=cpu"):  # a preset given to the stage is not overridden by those resets

@@ -4,7 +4,7 @@ import json
 
 import pandas as pd
 
-from trakdis.utils.checkpoint import load_checkpoint
+from trakdis.utils.checkpoint import read_checkpoint
 
 from .conftest import online_dt_args, run_recipe
 
@@ -17,7 +17,7 @@ def test_online_dt_rollouts_on_a_2_process_collector(workdir, dataset, teacher):
     run_dir = workdir / "runs" / "online_dt" / "multi"
     assert json.loads((run_dir / "config.json").read_text())["collector"] == "multi_sync"
     assert "round 1/1: rollout normalized performance" in out.stdout and "2 envs" in out.stdout
-    ck = load_checkpoint(run_dir / "checkpoint.pt")
+    ck = read_checkpoint(run_dir / "checkpoint.pt")
     assert ck["counters"]["rounds"] == 1 and ck["buffer"]["num_online_added"] == 2  # 1 round x 2 episodes
     frame = pd.read_csv(run_dir / "log.csv")
     assert frame["online/normalized_performance"].notna().sum() == 1

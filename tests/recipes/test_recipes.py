@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from trakdis.utils.checkpoint import load_checkpoint
+from trakdis.utils.checkpoint import read_checkpoint
 from trakdis.modules import EncoderEnsemble, find_dt_actor
 from trakdis.policies import load_encoder, load_policy
 from trakdis.transforms import normalizer_parts
@@ -46,7 +46,7 @@ def test_online_dt_files_and_scores(teacher):
     assert frame["eval_expert/normalized_performance"].notna().sum() == 1
     assert frame["train/loss_nll"].notna().sum() >= 4 and frame["step"].max() == 6 + 2 * 3
     assert frame["online/normalized_performance"].notna().sum() == 2
-    ck = load_checkpoint(teacher / "checkpoint.pt")
+    ck = read_checkpoint(teacher / "checkpoint.pt")
     assert ck["step"] == 12 and ck["counters"]["rounds"] == 2 and ck["buffer"]["num_online_added"] == 4
     # default (DAgger): the buffer holds the demonstrations and every rollout
     assert ck["buffer"]["config"]["capacity"] == 4 + 2 * 2 and ck["buffer"]["online"].tolist() == [False] * 4 + [True] * 4
@@ -54,7 +54,7 @@ def test_online_dt_files_and_scores(teacher):
     handle = load_policy(teacher)
     assert handle.kind == "teacher" and handle.horizon == HORIZON and handle.observation_key == "state"
     # the grasp commands are left out of the DT's action tokens (--model.hidden-action-dims, default: the task's)
-    assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7) == load_checkpoint(teacher / "policy.pt")["dt_config"]["hidden_action_dims"]
+    assert find_dt_actor(handle.actor).config.hidden_action_dims == (3, 7) == read_checkpoint(teacher / "policy.pt")["dt_config"]["hidden_action_dims"]
     assert cv2.imread(str(teacher / "curves.png")) is not None
     # the phase table: expert 2, offline 2, rollouts 2 x 2, after round 1 (--eval-every 1) 2, final 2 episodes
     phases = json.loads((teacher / "phases.json").read_text())
@@ -93,7 +93,7 @@ def test_online_dt_dagger_learns_the_experts_action_on_its_rollouts(workdir, dat
     action, so the offline phase is that of --online-labels executed (Online DT), update for update."""
     from trakdis.envs import expert_action
 
-    buffer = load_checkpoint(teacher / "checkpoint.pt")["buffer"]
+    buffer = read_checkpoint(teacher / "checkpoint.pt")["buffer"]
     assert "expert_action" in buffer["config"]["keys"]
     stored = buffer["replay_buffer"]["_storage"]["_storage"]
     state, action, label = stored["state"], stored["action"], stored["expert_action"]
@@ -103,7 +103,7 @@ def test_online_dt_dagger_learns_the_experts_action_on_its_rollouts(workdir, dat
     assert torch.equal(label[:4], action[:4]) and (label[4:] - action[4:]).abs().max() > 0.1
     run_recipe(workdir, "online_dt", *online_dt_args("executed", "--online-labels", "executed", "--eval-every", 0))
     run_dir = workdir / "runs" / "online_dt" / "executed"
-    plain = load_checkpoint(run_dir / "checkpoint.pt")["buffer"]
+    plain = read_checkpoint(run_dir / "checkpoint.pt")["buffer"]
     # Online DT: as many slots as demonstrations; a rollout enters only by beating the worst one
     assert plain["config"]["capacity"] == 4 and plain["config"]["replacement"] == "lowest_return"
     assert "expert_action" not in plain["config"]["keys"]
@@ -149,9 +149,9 @@ def test_online_dt_offline_control(workdir, dataset):
     pd.testing.assert_frame_equal(read_log(workdir / "runs" / "online_dt" / "control"),
                                   read_log(workdir / "runs" / "online_dt" / "control-executed"))
     run_dir = workdir / "runs" / "online_dt" / "control"
-    ck = load_checkpoint(run_dir / "checkpoint.pt")
+    ck = read_checkpoint(run_dir / "checkpoint.pt")
     assert ck["counters"]["rounds"] == 1 and ck["buffer"]["num_online_added"] == 0
-    selection, policy = ck["counters"]["selection"], load_checkpoint(run_dir / "policy.pt")
+    selection, policy = ck["counters"]["selection"], read_checkpoint(run_dir / "policy.pt")
     assert sorted(selection["scores"]) == [0, 1] and all(len(v) == 2 for v in selection["scores"].values())
     assert policy["selected_round"] == selection["best"] and set(policy["selection_scores"]) == {0, 1}
     for k, v in selection["state_dict"].items():
@@ -173,7 +173,7 @@ def test_online_dt_sigkill_then_resume_matches_uninterrupted(workdir, dataset, t
     proc = start_recipe(workdir, "online_dt", *online_dt_args("killed"))
     kill_when(proc, lambda: (run_dir / "checkpoint.pt").exists())
     assert not (run_dir / "policy.pt").exists()
-    step = load_checkpoint(run_dir / "checkpoint.pt")["step"]
+    step = read_checkpoint(run_dir / "checkpoint.pt")["step"]
     out = run_recipe(workdir, "online_dt", "--resume", "--name", "killed")
     assert f"from step {step}" in out.stdout
     assert (run_dir / "policy.pt").exists()
@@ -207,7 +207,7 @@ def test_train_encoder_with_teacher_resumes_exactly(workdir, dataset, teacher):
     out = run_recipe(workdir, "train_encoder", "--resume", "--name", "enc_t_cut")
     assert "from step 1" in out.stdout and "student round 1/1" in out.stdout
     runs = workdir / "runs" / "train_encoder"
-    full, cut = (load_checkpoint(runs / name / "encoder.pt")["state_dict"] for name in ("enc_t_full", "enc_t_cut"))
+    full, cut = (read_checkpoint(runs / name / "encoder.pt")["state_dict"] for name in ("enc_t_full", "enc_t_cut"))
     assert full.keys() == cut.keys() and all(torch.equal(full[k], cut[k]) for k in full)
     pd.testing.assert_frame_equal(read_log(runs / "enc_t_full"), read_log(runs / "enc_t_cut"), check_like=True)
 
@@ -219,10 +219,10 @@ def test_train_encoder_cosine_schedule_resumes(workdir, dataset):
             "--hidden-dim", 16, "--lr", 1e-3, "--lr-schedule", "cosine"]
     run_recipe(workdir, "train_encoder", *args, "--stop-after", 1)
     run_dir = workdir / "runs" / "train_encoder" / "enc_cos"
-    after_one = load_checkpoint(run_dir / "checkpoint.pt")
+    after_one = read_checkpoint(run_dir / "checkpoint.pt")
     assert after_one["optim"]["param_groups"][0]["lr"] == pytest.approx(1e-3 * 0.75)  # (1 + cos(pi / 3)) / 2
     run_recipe(workdir, "train_encoder", "--resume", "--name", "enc_cos")
-    final = load_checkpoint(run_dir / "checkpoint.pt")
+    final = read_checkpoint(run_dir / "checkpoint.pt")
     assert final["schedule"]["last_epoch"] == 3
     assert final["optim"]["param_groups"][0]["lr"] == pytest.approx(0.0, abs=1e-12)
     assert (run_dir / "encoder.pt").exists()
@@ -241,7 +241,7 @@ def test_train_encoder_extra_noisy_data_and_keypoint_layout(workdir, dataset):
     assert f"{11 * HORIZON} training / {HORIZON} validation images" in out.stdout
     assert out.stdout.count(f"training images +{4 * HORIZON} from") == 2
     assert "corners" in out.stdout and "pickers" in out.stdout
-    saved = load_checkpoint(workdir / "runs" / "train_encoder" / "enc_extra" / "encoder.pt")
+    saved = read_checkpoint(workdir / "runs" / "train_encoder" / "enc_extra" / "encoder.pt")
     assert saved["encoder_kwargs"]["head"] == "keypoints" and set(saved["val_error_cm"]) == {"corners_cm", "pickers_cm"}
 
 
@@ -254,7 +254,7 @@ def test_distill_files_and_resume(workdir, student):
     assert frame["eval/normalized_performance"].notna().sum() == 3  # before, after rounds 1 and 2 (the curve)
     # early stopping: the copy and the students after rounds 1 and 2 played 2 train-split episodes each
     assert frame.dropna(subset=["selection/normalized_performance"])["step"].tolist() == [0, 2, 4]  # 2 updates a round
-    saved = load_checkpoint(student / "policy.pt")
+    saved = read_checkpoint(student / "policy.pt")
     assert list(saved["selection_scores"]) == [0, 1, 2] and saved["selected_round"] in (0, 1, 2)
     assert saved["select_episodes"] == 2  # given: the task's default (TaskDefaults.select_episodes) does not apply
     assert saved["expert_coef"] == 0.0  # rollouts in the data: the task's default (TaskDefaults.expert_coef) does not apply
@@ -268,7 +268,7 @@ def test_distill_files_and_resume(workdir, student):
     assert "from step 2" in out.stdout
     a, b = read_log(student), read_log(workdir / "runs" / "distill" / "student2")
     assert a["step"].tolist() == b["step"].tolist()
-    resumed = load_checkpoint(workdir / "runs" / "distill" / "student2" / "policy.pt")
+    resumed = read_checkpoint(workdir / "runs" / "distill" / "student2" / "policy.pt")
     assert list(resumed["selection_scores"]) == [0, 1, 2]  # round 1's score came back from the checkpoint
 
 
@@ -285,8 +285,8 @@ def test_distill_curve_ends_with_the_last_round(workdir, teacher, encoder):
     assert kept["step"].tolist() == [4]
     assert kept["eval_kept/normalized_performance"].item() == curve["eval/normalized_performance"].iloc[0]
     assert "the kept student (round 0)" in out.stdout
-    saved = load_checkpoint(workdir / "runs" / "distill" / "kept" / "policy.pt")
-    copy = load_checkpoint(workdir / "runs" / "online_dt" / "teacher" / "policy.pt")
+    saved = read_checkpoint(workdir / "runs" / "distill" / "kept" / "policy.pt")
+    copy = read_checkpoint(workdir / "runs" / "online_dt" / "teacher" / "policy.pt")
     assert saved["selected_round"] == 0
     assert all(torch.equal(saved["actor"][k], v) for k, v in copy["actor"].items())  # the weight copy, unchanged
 
@@ -311,7 +311,7 @@ def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monke
     assert frame.dropna(subset=["eval/normalized_performance"])["step"].tolist() == [0, 4]
     kept = frame.dropna(subset=["eval_kept/normalized_performance"])
     assert kept["step"].tolist() == [4] and kept["eval_kept/normalized_performance"].item() == state["final_eval"]
-    saved = load_checkpoint(workdir / "runs" / "distill" / "middle" / "policy.pt")
+    saved = read_checkpoint(workdir / "runs" / "distill" / "middle" / "policy.pt")
     assert saved["selected_round"] == 1
     assert saved["expert_coef"] == 1.0  # the expert data alone: ClothFold's default (TaskDefaults.expert_coef)
     assert frame["train/loss_expert"].notna().sum() == 2
@@ -325,7 +325,7 @@ def test_distill_ablations(workdir, teacher, encoder):
     assert "expert imitation" in out.stdout and "weight copy False" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "ablation")
     assert frame["train/loss_nll"].notna().sum() == 2 and "train/loss_distill" not in frame.columns
-    ck = load_checkpoint(workdir / "runs" / "distill" / "ablation" / "policy.pt")
+    ck = read_checkpoint(workdir / "runs" / "distill" / "ablation" / "policy.pt")
     assert ck["distill"] is False and ck["weight_copy"] is False and ck["state_noise"] == 1e-3
     assert ck["proprio_dims"] == list(range(12, 18))  # ClothFold: two pickers after the 4 corners
     assert load_policy(workdir / "runs" / "distill" / "ablation").proprio_dims == tuple(range(12, 18))
@@ -351,12 +351,12 @@ def test_distill_the_papers_no_distill_starts_from_fresh_weights(workdir, teache
     assert frame["train/loss_nll"].notna().sum() == 2 and "train/loss_distill" not in frame.columns
     assert "selection/normalized_performance" not in frame.columns  # --select-episodes 0: the last round
     assert frame["step"].max() == teacher_cfg.offline_updates
-    ck = load_checkpoint(workdir / "runs" / "distill" / "paper_nd" / "policy.pt")
+    ck = read_checkpoint(workdir / "runs" / "distill" / "paper_nd" / "policy.pt")
     assert (ck["weight_copy"], ck["distill"], ck["expert_coef"], ck["selected_round"]) == (False, False, 0.0, None)
     fresh_args = distill_args("paper_nd0", "--no-eval-teacher", "--eval-episodes", 0, "--episodes-per-round", 0)
     run_recipe(workdir, "distill", *fresh_args, *flags, "--rounds", 0)
-    fresh = load_checkpoint(workdir / "runs" / "distill" / "paper_nd0" / "policy.pt")["actor"]
-    copy = load_checkpoint(teacher / "policy.pt")["actor"]
+    fresh = read_checkpoint(workdir / "runs" / "distill" / "paper_nd0" / "policy.pt")["actor"]
+    copy = read_checkpoint(teacher / "policy.pt")["actor"]
     weights = [k for k, v in copy.items() if v.is_floating_point() and v.dim() == 2]
     assert fresh.keys() == copy.keys() and weights
     assert not any(torch.equal(fresh[k], copy[k]) for k in weights)  # not one weight matrix is the teacher's
@@ -382,7 +382,7 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
     assert frame["train/loss_expert"].notna().sum() == 2
     assert frame["eval/normalized_performance"].notna().sum() == 2  # acted with PickerOdometry in its env
     handle = load_policy(workdir / "runs" / "distill" / "offline")
-    saved = load_checkpoint(workdir / "runs" / "distill" / "offline" / "policy.pt")
+    saved = read_checkpoint(workdir / "runs" / "distill" / "offline" / "policy.pt")
     assert handle.picker_odometry and saved["picker_odometry"]
     # ClothFold's default: no selection episodes, the last round's student kept
     assert saved["select_episodes"] == 0 and saved["selected_round"] is None and "selection/" not in " ".join(frame.columns)
@@ -439,7 +439,7 @@ def test_help(recipe, flags, capsys):
 
 
 def test_paper_preset_config():
-    from trakdis.modules import DTConfig
+    from trakdis.modules import DTModelConfig
     from trakdis.utils.config import parse_config
 
     module = load_recipe("online_dt")
@@ -450,11 +450,11 @@ def test_paper_preset_config():
     assert cfg.data.episodes == 4  # explicit flags win over the preset
     dt = cfg.model.for_task(18, 8, horizon=100)
     assert (dt.embed_dim, dt.n_head, dt.context_len, dt.dropout, dt.attn_dropout) == (256, 16, 30, 0.1, 0.1)
-    assert cfg.online_labels == "executed" and cfg.model.log_std_min == -2.5  # Online DT; DTConfig's floor
+    assert cfg.online_labels == "executed" and cfg.model.log_std_min == -2.5  # Online DT; DTModelConfig's floor
     cfg = parse_config(module.OnlineDTConfig, ["--preset", "cpu"], presets=module.PRESETS)
     assert (cfg.data.episodes, cfg.offline_updates, cfg.online_labels, cfg.eval_episodes) == (200, 6000, "expert", 100)
     assert (cfg.select_episodes, cfg.select_every) == (30, 8)
-    assert cfg.model == DTConfig()  # the library's default model, not the main job's log-std floor
+    assert cfg.model == DTModelConfig()  # the library's default model, not the main job's log-std floor
     main_job = module.OnlineDTConfig()
     assert (main_job.data.episodes, main_job.model.log_std_min, main_job.online_labels) == (20, -1.5, "expert")
     module = load_recipe("distill")
@@ -480,23 +480,24 @@ def test_distill_picker_odometry_auto_on_with_executed_actions():
 
 
 def test_model_section_is_the_dt_config_and_old_run_configs_load():
-    """``--model.*`` is DTConfig itself: the recipes' defaults, and the ``model`` section of a
+    """``--model.*`` is DTModelConfig itself: the recipes' defaults, and the ``model`` section of a
     config.json written when it was a separate ModelConfig (7 keys) loads into the same model."""
-    from trakdis.modules import DTConfig
+    from trakdis.modules import DTModelConfig
     from trakdis.utils.config import config_from_dict, config_to_dict
 
     module = load_recipe("online_dt")
     d = module.OnlineDTConfig().model.for_task(18, 8, horizon=100)
     assert (d.embed_dim, d.n_layer, d.n_head, d.context_len, d.dropout, d.attn_dropout, d.loc_bound, d.log_std_min,
-            d.max_timestep) == (64, 2, 2, 20, 0.0, 0.0, 5.0, -1.5, 1024)  # the main job's floor (DTConfig's: -2.5)
+            d.max_timestep) == (64, 2, 2, 20, 0.0, 0.0, 5.0, -1.5, 1024)  # the main job's floor (DTModelConfig's: -2.5)
     assert module.OnlineDTConfig().model.for_task(18, 8, horizon=2000).max_timestep == 2001
     old = config_to_dict(module.OnlineDTConfig())
     old["model"] = {"embed_dim": 16, "n_layer": 1, "n_head": 1, "context_len": 4, "dropout": 0.1, "loc_bound": 5.0,
                     "log_std_min": -2.5}
     dt = config_from_dict(module.OnlineDTConfig, old).model.for_task(18, 8, horizon=6)
-    assert dt == DTConfig(state_dim=18, action_dim=8, embed_dim=16, n_layer=1, n_head=1, context_len=4, dropout=0.1,
-                          attn_dropout=0.1, loc_bound=5.0, log_std_min=-2.5, max_timestep=1024, hidden_action_dims=())
-    assert DTConfig(**dt.to_dict()) == dt  # a policy file's dt_config
+    assert dt == DTModelConfig(state_dim=18, action_dim=8, embed_dim=16, n_layer=1, n_head=1, context_len=4,
+                               dropout=0.1, attn_dropout=0.1, loc_bound=5.0, log_std_min=-2.5, max_timestep=1024,
+                               hidden_action_dims=())
+    assert DTModelConfig(**dt.to_dict()) == dt  # a policy file's dt_config
     # an old section has no hidden_action_dims: the recipe's default for the task applies (docs/design.md)
     old_model = config_from_dict(module.OnlineDTConfig, old).model
     assert old_model.hidden_action_dims is None
@@ -557,7 +558,7 @@ def test_pipeline_runs_every_stage_and_writes_one_table(workdir, dataset):
     assert "of the training images' picker positions are out of view" in out.stdout
     for run_dir in ("online_dt/pipe-teacher", "distill/pipe-student"):
         assert normalizer_parts(load_policy(workdir / "runs" / run_dir).normalizer)[1] is not None, run_dir
-    ck = load_checkpoint(workdir / "runs" / "train_encoder" / "pipe-encoder" / "encoder.pt")
+    ck = read_checkpoint(workdir / "runs" / "train_encoder" / "pipe-encoder" / "encoder.pt")
     assert ck["mask_unseen_pickers"] is True and ck["out_of_view_fill"]["starts"] == [12, 15]
     table = pd.read_csv(workdir / "runs" / "pipeline" / "pipe" / "summary.csv")
     assert table["policy"].tolist() == ["expert", "teacher", "student"]
@@ -590,14 +591,14 @@ def test_train_encoder_keeps_the_member_whose_weight_copy_folds_best(workdir, te
     assert "member 0: weight copy" in out.stdout and "member 1: weight copy" in out.stdout
     assert "weight copies after 1 episodes: member 0" in out.stdout  # raced: one episode gives no error, both play on
     run_dir = workdir / "runs" / "train_encoder" / "enc-select"
-    saved = load_checkpoint(run_dir / "encoder.pt")
+    saved = read_checkpoint(run_dir / "encoder.pt")
     means = {k: sum(v) / len(v) for k, v in saved["member_scores"].items()}
     assert set(means) == {0, 1} and all(len(v) == 2 for v in saved["member_scores"].values())
     kept = saved["selected_member"]
     assert means[kept] == max(means.values()) and f"member {kept} kept" in out.stdout
     encoder, _ = load_encoder(run_dir)
     assert isinstance(encoder, EncoderEnsemble) and len(encoder.members) == 1 and encoder.state_mirror is not None
-    trained = load_checkpoint(run_dir / "checkpoint.pt")["encoder"]  # both members, as trained
+    trained = read_checkpoint(run_dir / "checkpoint.pt")["encoder"]  # both members, as trained
     for name, value in encoder.members[0].state_dict().items():
         assert torch.equal(value, trained[f"members.{kept}.{name}"]), name
     assert read_log(run_dir)[f"select/member{kept}_normalized_performance"].notna().sum() == 1
@@ -612,13 +613,13 @@ def test_train_encoder_on_the_weight_copied_students_states(workdir, teacher):
     frame = read_log(workdir / "runs" / "train_encoder" / "enc-student")
     assert frame["student/normalized_performance"].notna().sum() == 1
     assert frame["student/pickers_cm"].notna().sum() == 1
-    ck = load_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "encoder.pt")
+    ck = read_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "encoder.pt")
     assert ck["student_rounds"] == 1 and ck["epoch"] == 2
     # --members 2 --test-time-flip on: an ensemble of two encoders, each also reading the mirrored image
     encoder, _ = load_encoder(workdir / "runs" / "train_encoder" / "enc-student")
     assert isinstance(encoder, EncoderEnsemble) and len(encoder.members) == 2 and encoder.state_mirror is not None
     assert ck["ensemble"]["members"] == 2
     # the run's checkpoint (with the student's images) loads with the safe loader, so --resume works
-    ck = load_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "checkpoint.pt")
+    ck = read_checkpoint(workdir / "runs" / "train_encoder" / "enc-student" / "checkpoint.pt")
     assert ck["student_steps"]["pixels"].shape[0] == 2 * HORIZON
     run_recipe(workdir, "train_encoder", "--resume", "--name", "enc-student")

@@ -79,7 +79,7 @@ def test_compose_applies_the_steps_in_order():
 def test_state_normalizer_with_out_of_view_fill(tmp_path):
     """--mask-unseen-pickers: the fill runs before standardising (Compose), travels in the state
     dict; state dicts without it (earlier policy files and checkpoints) load as before."""
-    from trakdis.utils.checkpoint import load_checkpoint, save_checkpoint
+    from trakdis.utils.checkpoint import read_checkpoint, save_checkpoint
 
     fill = OutOfViewFill.for_task("ClothFold")
     states = torch.rand(4, 5, 18) * 0.2 - 0.1
@@ -99,7 +99,7 @@ def test_state_normalizer_with_out_of_view_fill(tmp_path):
     assert torch.equal(run(norm, states), (fill.mask(states) - n.loc) / n.scale)
     assert torch.equal(states, raw) and not torch.allclose(run(norm, states), run(plain, states))
     save_checkpoint(tmp_path / "n.pt", {"with": normalizer_state_dict(norm), "without": normalizer_state_dict(plain)})
-    saved = load_checkpoint(tmp_path / "n.pt")
+    saved = read_checkpoint(tmp_path / "n.pt")
     assert set(saved["with"]) == {"loc", "scale", "keys", "fill"} and saved["with"]["keys"] == ["state", "state_estimate"]
     again = normalizer_from_state_dict(saved["with"])
     g = normalizer_parts(again)[1]

@@ -7,7 +7,7 @@ from tensordict import TensorDict
 
 from trakdis.envs.model import CAMERA_POS
 from trakdis.transforms import OutOfViewFill, fixed_camera_matrix
-from trakdis.utils.checkpoint import load_checkpoint, save_checkpoint
+from trakdis.utils.checkpoint import read_checkpoint, save_checkpoint
 
 IN_VIEW = [(0.0, 0.0, 0.0), (0.1, 0.05, 0.05), (0.0, 0.3, 0.0)]
 # high above the frame, beyond its right / left edge, and behind the camera (on its axis: the
@@ -54,7 +54,7 @@ def test_diagonal_tasks_mask_their_one_picker_and_tensordicts():
 def test_dict_round_trip_through_the_safe_loader(tmp_path):
     fill = OutOfViewFill.for_task("ClothFold", image_size=64, in_keys=("state", "state_estimate"))
     save_checkpoint(tmp_path / "f.pt", {"fill": fill.to_dict()})
-    saved = load_checkpoint(tmp_path / "f.pt")["fill"]
+    saved = read_checkpoint(tmp_path / "f.pt")["fill"]
     assert set(saved) == {"camera_matrix", "image_size", "starts", "fill", "keys"}  # the format of earlier files
     again = OutOfViewFill.from_dict(saved)
     assert again.in_keys == again.out_keys == ["state", "state_estimate"] and again.starts == fill.starts

@@ -7,9 +7,9 @@ import torch
 from tensordict import TensorDict
 
 from trakdis.utils.checkpoint import (
-    CheckpointError,
+    FileFormatError,
     capture_state,
-    load_checkpoint,
+    read_checkpoint,
     restore_state,
     save_checkpoint,
 )
@@ -27,7 +27,7 @@ def test_roundtrip_model_optimizer_rng(tmp_path):
 
     model2 = torch.nn.Linear(3, 2)
     opt2 = torch.optim.Adam(model2.parameters(), lr=1e-2)
-    loaded = load_checkpoint(path, required=("model", "step"))
+    loaded = read_checkpoint(path, required=("model", "step"))
     restore_state(loaded, {"model": model2, "optim": opt2})
     assert loaded["step"] == 7 and loaded["counters"] == {"episodes": 3}
     assert torch.equal(model.weight, model2.weight)
@@ -39,7 +39,7 @@ def test_atomic_no_temp_left_and_overwrite(tmp_path):
     p = tmp_path / "ck.pt"
     save_checkpoint(p, {"step": 1})
     save_checkpoint(p, {"step": 2})
-    assert load_checkpoint(p)["step"] == 2
+    assert read_checkpoint(p)["step"] == 2
     assert sorted(os.listdir(tmp_path)) == ["ck.pt"]
 
 
@@ -53,26 +53,26 @@ def test_failed_write_keeps_old_file(tmp_path):
 
     with pytest.raises(RuntimeError):
         save_checkpoint(p, {"step": 2, "bad": Bad()})
-    assert load_checkpoint(p)["step"] == 1
+    assert read_checkpoint(p)["step"] == 1
     assert sorted(os.listdir(tmp_path)) == ["ck.pt"]
 
 
 def test_clear_errors(tmp_path):
-    with pytest.raises(CheckpointError, match="does not exist"):
-        load_checkpoint(tmp_path / "none.pt")
+    with pytest.raises(FileFormatError, match="does not exist"):
+        read_checkpoint(tmp_path / "none.pt")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
-    with pytest.raises(CheckpointError, match="bad.pt"):
-        load_checkpoint(bad)
+    with pytest.raises(FileFormatError, match="bad.pt"):
+        read_checkpoint(bad)
     torch.save({"x": 1}, tmp_path / "plain.pt")
-    with pytest.raises(CheckpointError, match="not a trakdis checkpoint"):
-        load_checkpoint(tmp_path / "plain.pt")
+    with pytest.raises(FileFormatError, match="not a trakdis checkpoint"):
+        read_checkpoint(tmp_path / "plain.pt")
     save_checkpoint(tmp_path / "ok.pt", {"step": 1})
-    with pytest.raises(CheckpointError, match="optimizer"):
-        load_checkpoint(tmp_path / "ok.pt", required=("optimizer",))
-    with pytest.raises(CheckpointError, match="'model'"):
+    with pytest.raises(FileFormatError, match="optimizer"):
+        read_checkpoint(tmp_path / "ok.pt", required=("optimizer",))
+    with pytest.raises(FileFormatError, match="'model'"):
         restore_state({"step": 1}, {"model": torch.nn.Linear(1, 1)})
-    with pytest.raises(CheckpointError, match="restoring 'model'"):
+    with pytest.raises(FileFormatError, match="restoring 'model'"):
         restore_state({"model": torch.nn.Linear(2, 2).state_dict()}, {"model": torch.nn.Linear(1, 1)})
 
 
@@ -100,9 +100,9 @@ def test_crafted_file_runs_no_code(tmp_path):
                       observation_key="state")
     encoder = _crafted(tmp_path / "encoder.pt", marker, kind="encoder")
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
-    for load in (lambda: load_policy(policy), lambda: load_encoder(encoder), lambda: load_checkpoint(policy),
-                 lambda: load_checkpoint(policy, numpy_arrays=True)):  # the resume checkpoint's loader too
-        with pytest.raises(CheckpointError, match=r"(policy|encoder)\.pt was refused.*weights_only"):
+    for load in (lambda: load_policy(policy), lambda: load_encoder(encoder), lambda: read_checkpoint(policy),
+                 lambda: read_checkpoint(policy, numpy_arrays=True)):  # the resume checkpoint's loader too
+        with pytest.raises(FileFormatError, match=r"(policy|encoder)\.pt was refused.*weights_only"):
             load()
     assert not marker.exists()
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
@@ -128,7 +128,7 @@ def test_resume_checkpoint_loads_with_weights_only(tmp_path):
     path = save_checkpoint(tmp_path / "ck.pt", state)
     torch.load(path, weights_only=True)  # no allow-list needed
     np.random.seed(0)
-    restore_state(load_checkpoint(path), {})  # the NumPy RNG state round-trips exactly through plain types
+    restore_state(read_checkpoint(path), {})  # the NumPy RNG state round-trips exactly through plain types
     assert np.array_equal(np.random.rand(3), expected)
 
 
@@ -140,9 +140,9 @@ def test_old_resume_checkpoint_with_numpy_rng_state(tmp_path):
                 "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}},
                path)
     expected = np.random.rand(2)
-    with pytest.raises(CheckpointError, match="old.pt was refused"):
-        load_checkpoint(path)  # policy and encoder files never need NumPy arrays
-    ck = load_checkpoint(path, numpy_arrays=True)
+    with pytest.raises(FileFormatError, match="old.pt was refused"):
+        read_checkpoint(path)  # policy and encoder files never need NumPy arrays
+    ck = read_checkpoint(path, numpy_arrays=True)
     np.random.seed(0)
     restore_state(ck, {})
     assert ck["step"] == 4 and np.array_equal(np.random.rand(2), expected)
@@ -163,7 +163,7 @@ def test_rng_state_is_torchrl_global_rng_state_and_the_earlier_layout_still_rest
     earlier = {"python": random.getstate(), "numpy": np_state, "torch": torch.get_rng_state()}
     save_checkpoint(tmp_path / "earlier.pt", {"rng": earlier, "new": rng_state()})
     expected = (random.random(), np.random.rand(3).tolist(), torch.rand(3).tolist())
-    loaded = load_checkpoint(tmp_path / "earlier.pt")
+    loaded = read_checkpoint(tmp_path / "earlier.pt")
     for key in ("rng", "new"):
         random.seed(0), np.random.seed(0), torch.manual_seed(0)
         set_rng_state(loaded[key])

@@ -2,8 +2,8 @@
 baselines, and the wrappers that act on standardised values (``NormalizedPolicy``, ``NormalizedEncoder``)."""
 from trakdis.modules.acting import DTActingPolicy
 from trakdis.modules.baselines import BCConfig, BCHead, ImageTrunk, ImageTrunkConfig, make_bc_actor, with_image_trunk
-from trakdis.modules.decision_transformer import (DTBackbone, DTConfig, StochasticDTActor, find_dt_actor, make_dt_actor,
-                                                 recipe_hidden_action_dims)
+from trakdis.modules.decision_transformer import (DTBackbone, DTModelConfig, StochasticDTActor, find_dt_actor,
+                                                 make_dt_actor, recipe_hidden_action_dims)
 from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
 from trakdis.modules.encoder import EncoderEnsemble, SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
@@ -19,7 +19,7 @@ __all__ = [
     "CausalTransformer",
     "DTActingPolicy",
     "DTBackbone",
-    "DTConfig",
+    "DTModelConfig",
     "recipe_hidden_action_dims",
     "KVCache",
     "NormalizedEncoder",

@@ -38,7 +38,7 @@ class DTActingPolicy(TensorDictModuleBase):
     Args:
         actor: an actor from :func:`~trakdis.modules.make_dt_actor` (or any module containing one
             ``StochasticDTActor`` wrapped in a ``TensorDictModule`` and a probabilistic module).
-        context_len: K; defaults to the actor's ``DTConfig.context_len``.
+        context_len: K; defaults to the actor's ``DTModelConfig.context_len``.
         mode: how each step is computed; per-step cost never grows with the number of steps taken.
 
             * ``"window"`` (default): re-encode the last K steps (``3K`` tokens) with the same

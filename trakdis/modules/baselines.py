@@ -111,7 +111,7 @@ class BCConfig:
     """Sizes of the BC-image head (features -> Gaussian action parameters).
 
     ``log_std_min``/``log_std_max``/``init_log_std``/``loc_bound`` mean what they mean in
-    :class:`~trakdis.modules.DTConfig` (the same defaults as the recipes' teacher), so BC and the
+    :class:`~trakdis.modules.DTModelConfig` (the same defaults as the recipes' teacher), so BC and the
     DTs share one action distribution and one target clamp (:attr:`action_eps`).
     """
 
@@ -138,7 +138,7 @@ class BCConfig:
 
     @property
     def action_eps(self) -> float:
-        """Target-action clamp matching :attr:`loc_bound` (see ``DTConfig.action_eps``)."""
+        """Target-action clamp matching :attr:`loc_bound` (see ``DTModelConfig.action_eps``)."""
         return 1.0 - math.tanh(self.loc_bound) if self.loc_bound > 0 else 1e-6
 
     def to_dict(self) -> dict:

@@ -25,13 +25,14 @@ from trakdis.envs.specs import task_spec
 from trakdis.envs.task_defaults import task_defaults
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 
-__all__ = ["DTConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor", "recipe_hidden_action_dims"]
+__all__ = ["DTModelConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor",
+           "recipe_hidden_action_dims"]
 
 TOKENS_PER_STEP = 3  # (return-to-go, state, action)
 
 
 @dataclass
-class DTConfig:
+class DTModelConfig:
     """A Decision Transformer's sizes and action head: the one definition of them, also the
     recipes' ``--model.*`` section (each field's docstring is its ``--help`` text).
 
@@ -40,6 +41,9 @@ class DTConfig:
     and fills them in with :meth:`for_task` once the environment is known. Unbounded means
     (``loc_bound=0``) and ``log_std_min=-5`` are Online DT's choices; why the defaults differ:
     docs/recipes/online_dt.md.
+
+    Not TorchRL's ``DecisionTransformer.DTConfig`` (the GPT-2 sizes of its ``DTActor`` and
+    ``OnlineDTActor``): this one also holds the action head's bounds and the hidden action dims.
     """
 
     state_dim: Optional[int] = None
@@ -91,7 +95,7 @@ class DTConfig:
         for name in ("state_dim", "action_dim", "context_len", "max_timestep"):
             value = getattr(self, name)
             if value is not None and int(value) < 1:
-                raise ValueError(f"DTConfig.{name}={value} must be >= 1")
+                raise ValueError(f"DTModelConfig.{name}={value} must be >= 1")
         if not self.log_std_min < self.log_std_max:
             raise ValueError(f"log_std_min={self.log_std_min} must be < log_std_max={self.log_std_max}")
         if not self.log_std_min < self.init_log_std < self.log_std_max:
@@ -102,8 +106,8 @@ class DTConfig:
             self.hidden_action_dims = tuple(int(d) for d in self.hidden_action_dims)
             bad = [d for d in self.hidden_action_dims if d < 0 or (self.action_dim is not None and d >= self.action_dim)]
             if bad or len(set(self.hidden_action_dims)) != len(self.hidden_action_dims):
-                raise ValueError(f"DTConfig.hidden_action_dims={self.hidden_action_dims} must be distinct action dims "
-                                 f"in [0, action_dim={self.action_dim})")
+                raise ValueError(f"DTModelConfig.hidden_action_dims={self.hidden_action_dims} must be distinct action "
+                                 f"dims in [0, action_dim={self.action_dim})")
         self.transformer_config()  # validates embed_dim/n_head/activation/dropouts
 
     @property
@@ -113,14 +117,14 @@ class DTConfig:
         return 1.0 - math.tanh(self.loc_bound) if self.loc_bound > 0 else 1e-6
 
     @classmethod
-    def paper(cls, state_dim: int, action_dim: int, **overrides) -> "DTConfig":
+    def paper(cls, state_dim: int, action_dim: int, **overrides) -> "DTModelConfig":
         """TraKDis paper sizes (:attr:`PAPER_SIZES`): embedding 256, 10 layers, 16 heads, context 30, dropout 0.1."""
         kwargs = dict(cls.PAPER_SIZES)
         kwargs.update(overrides)
         return cls(state_dim=state_dim, action_dim=action_dim, **kwargs)
 
     def for_task(self, state_dim: int, action_dim: int, horizon: int,
-                 hidden_action_dims: tuple[int, ...] = ()) -> "DTConfig":
+                 hidden_action_dims: tuple[int, ...] = ()) -> "DTModelConfig":
         """A copy (``dataclasses.replace``) for a task: its observation and action widths, a
         timestep table of at least ``horizon + 1`` entries, the attention dropout written out, and
         ``hidden_action_dims`` unless this config sets its own (the recipes pass
@@ -146,7 +150,7 @@ class DTConfig:
 
 
 def recipe_hidden_action_dims(task: str) -> tuple[int, ...]:
-    """The recipes' default ``DTConfig.hidden_action_dims`` for ``task``: its grasp commands
+    """The recipes' default ``DTModelConfig.hidden_action_dims`` for ``task``: its grasp commands
     (``TaskSpec.grasp_dims``) where its ``TaskDefaults.hidden_grasp`` says so (trakdis.envs.task_defaults),
     else none."""
     return task_spec(task).grasp_dims if task_defaults(task).hidden_grasp else ()
@@ -166,11 +170,11 @@ class DTBackbone(nn.Module):
     an empty batch or window, or a non-floating observation/action/return, is a clear error.
     """
 
-    def __init__(self, config: DTConfig):
+    def __init__(self, config: DTModelConfig):
         super().__init__()
         if config.state_dim is None or config.action_dim is None:
-            raise ValueError(f"DTConfig.state_dim={config.state_dim} and action_dim={config.action_dim} must be set to build "
-                             "a model (DTConfig.for_task)")
+            raise ValueError(f"DTModelConfig.state_dim={config.state_dim} and action_dim={config.action_dim} must be set "
+                             "to build a model (DTModelConfig.for_task)")
         self.config = config
         d = config.embed_dim
         self.embed_return = nn.Linear(1, d)
@@ -191,7 +195,7 @@ class DTBackbone(nn.Module):
         self.register_buffer("action_token_keep", keep if hidden else None, persistent=False)
 
     def embed_past_action(self, action: torch.Tensor) -> torch.Tensor:
-        """The action token's embedding, without ``DTConfig.hidden_action_dims`` (zeroed)."""
+        """The action token's embedding, without ``DTModelConfig.hidden_action_dims`` (zeroed)."""
         if self.action_token_keep is not None:
             action = action * self.action_token_keep
         return self.embed_action(action)
@@ -235,7 +239,7 @@ class DTBackbone(nn.Module):
         if hi >= self.config.max_timestep or lo < 0:
             raise ValueError(
                 f"DTBackbone: 'timestep' values must lie in [0, {self.config.max_timestep - 1}] "
-                f"(DTConfig.max_timestep), got [{int(timestep.min())}, {int(timestep.max())}]"
+                f"(DTModelConfig.max_timestep), got [{int(timestep.min())}, {int(timestep.max())}]"
             )
 
     def embed_step(self, observation, action, return_to_go, timestep) -> torch.Tensor:
@@ -307,7 +311,7 @@ class StochasticDTActor(nn.Module):
     by the ``TanhNormal`` distribution of the :class:`ProbabilisticActor` that wraps this module.
     """
 
-    def __init__(self, config: DTConfig):
+    def __init__(self, config: DTModelConfig):
         super().__init__()
         self.config = config
         self.transformer = DTBackbone(config)
@@ -333,7 +337,7 @@ class StochasticDTActor(nn.Module):
 
 
 def make_dt_actor(
-    config: DTConfig, observation_key="observation", *, device: torch.device | str | None = None
+    config: DTModelConfig, observation_key="observation", *, device: torch.device | str | None = None
 ) -> ProbabilisticActor:
     """Build a TorchRL ``ProbabilisticActor`` around a :class:`StochasticDTActor`.
 

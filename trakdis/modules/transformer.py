@@ -40,8 +40,8 @@ _ACTIVATIONS = {"gelu": nn.GELU, "relu": nn.ReLU, "gelu_tanh": lambda: nn.GELU(a
 
 @dataclass
 class TransformerConfig:
-    """Size of a :class:`CausalTransformer`, as :meth:`~trakdis.modules.DTConfig.transformer_config`
-    builds it (the sizes have no defaults here: :class:`~trakdis.modules.DTConfig` is where they are chosen).
+    """Size of a :class:`CausalTransformer`, as :meth:`~trakdis.modules.DTModelConfig.transformer_config`
+    builds it (the sizes have no defaults here: :class:`~trakdis.modules.DTModelConfig` is where they are chosen).
 
     Args:
         embed_dim: token width; must be divisible by ``n_head``.

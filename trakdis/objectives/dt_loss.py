@@ -112,7 +112,7 @@ class MaskedOnlineDTLoss(OnlineDTLoss):
     * a fixed weight ``lambda_entropy`` that may be 0 (``OnlineDTLoss`` takes ``log(alpha_init)``) and
       is used exactly (not as ``exp(log(lambda))``), with no ``loss_alpha`` output when it is fixed;
     * target actions clamped to ``[-1 + action_eps, 1 - action_eps]`` (to match the actor's
-      ``loc_bound``, :attr:`~trakdis.modules.DTConfig.action_eps`), while the actor still reads the
+      ``loc_bound``, :attr:`~trakdis.modules.DTModelConfig.action_eps`), while the actor still reads the
       unclamped actions as inputs;
     * the padding mask is required (a missing or malformed mask is an error, not "no masking"), and
       the logged ``entropy`` is its masked mean;

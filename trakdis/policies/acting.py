@@ -21,7 +21,7 @@ from trakdis.modules import DTActingPolicy, NormalizedPolicy
 from trakdis.transforms import EncoderTransform, ImageResize, PickerOdometry, ReturnToGo, StateNoise
 from trakdis.transforms.normalization import ProprioceptionOverride
 from trakdis.utils import limits
-from trakdis.utils.checkpoint import CheckpointError
+from trakdis.utils.checkpoint import FileFormatError
 
 from .files import IMAGE_POLICY_KINDS, read_policy_file, save_policy
 
@@ -140,7 +140,7 @@ class PolicyHandle:
     def save(self, path: str | Path, dt_config, *, encoder_file: Mapping[str, Any] | None = None,
              extra: Mapping[str, Any] | None = None) -> Path:
         """Write this Decision Transformer policy (teacher or student) with :func:`~trakdis.policies.save_policy`, from
-        the handle's own fields; ``dt_config``: its actor's :class:`~trakdis.modules.DTConfig`."""
+        the handle's own fields; ``dt_config``: its actor's :class:`~trakdis.modules.DTModelConfig`."""
         return save_policy(path, kind=self.kind, task=self.task, horizon=self.horizon, dt_config=dt_config,
                            actor=self.actor, observation_key=self.observation_key, target_return=self.target_return,
                            rtg_scale=self.rtg_scale, normalizer=self.normalizer, env_kwargs=self.env_kwargs,
@@ -157,7 +157,7 @@ def load_policy(spec: str | Path, *, task: str | None = None, horizon: int | Non
     only the entries trakdis writes, each of its type and range, and describe models of at most
     ``max_params`` parameters and ``max_activation_bytes`` of activations per acting window (raise
     them for a larger policy you trust). Anything else is a
-    :class:`~trakdis.utils.checkpoint.CheckpointError` naming the file and the entry."""
+    :class:`~trakdis.utils.checkpoint.FileFormatError` naming the file and the entry."""
     if horizon is not None and not (limits.is_int(horizon) and 1 <= horizon <= limits.MAX_HORIZON):
         raise ValueError(f"horizon must be >= 1 (an int, at most {limits.MAX_HORIZON}; None: the policy's own), "
                          f"got {horizon!r}")
@@ -176,10 +176,10 @@ def load_teacher(spec: str | Path, *, task: str | None = None, horizon: int | No
                  device: str = "cpu", **limits_kw: int) -> PolicyHandle:
     """:func:`load_policy` of a teacher's policy file (or run directory); a file of another kind, or
     a teacher for another ``task`` or ``horizon`` (each checked when given), is a
-    :class:`~trakdis.utils.checkpoint.CheckpointError`."""
+    :class:`~trakdis.utils.checkpoint.FileFormatError`."""
     teacher = load_policy(spec, device=device, **limits_kw)
     if teacher.kind != "teacher" or task not in (None, teacher.task) or horizon not in (None, teacher.horizon):
         expected = "".join([f" for {task}" if task else "", f" (horizon {horizon})" if horizon else ""])
-        raise CheckpointError(f"{teacher.source}: a {teacher.kind} for {teacher.task} (horizon {teacher.horizon}); "
+        raise FileFormatError(f"{teacher.source}: a {teacher.kind} for {teacher.task} (horizon {teacher.horizon}); "
                               f"expected a teacher{expected}")
     return teacher

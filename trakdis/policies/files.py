@@ -4,7 +4,7 @@ A *policy file* (``policy.pt``, written by ``online_dt.py`` and ``distill.py``) 
 dict holding everything needed to act without the recipe's config:
 
 ``kind`` (``"teacher"`` / ``"student"``), ``task``, ``horizon``, ``dt_config`` (a
-:class:`~trakdis.modules.DTConfig` dict), ``observation_key``, ``actor`` (state dict),
+:class:`~trakdis.modules.DTModelConfig` dict), ``observation_key``, ``actor`` (state dict),
 ``target_return`` and ``rtg_scale`` (acting return-to-go), ``env_kwargs``, ``normalizer`` (a
 state normaliser's :func:`~trakdis.transforms.normalizer_state_dict`, or None) and, for a student, ``encoder`` (an
 encoder file's dict, see :func:`save_encoder`). The image baselines' files (kinds ``bc_image`` /
@@ -26,13 +26,13 @@ from torch import nn
 from torchrl.envs.transforms import Compose, ObservationNorm
 
 from trakdis.envs import TASKS, render_version
-from trakdis.modules import (BCConfig, DTConfig, EncoderEnsemble, ImageTrunk, NormalizedEncoder, StateEncoder,
+from trakdis.modules import (BCConfig, DTModelConfig, EncoderEnsemble, ImageTrunk, NormalizedEncoder, StateEncoder,
                              make_bc_actor, make_dt_actor)
 from trakdis.modules.baselines import BCHead
 from trakdis.modules.decision_transformer import StochasticDTActor
 from trakdis.transforms.normalization import normalizer_from_state_dict, normalizer_state_dict
 from trakdis.utils import limits
-from trakdis.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from trakdis.utils.checkpoint import FileFormatError, read_checkpoint, save_checkpoint
 
 __all__ = [
     "POLICY_KEYS",
@@ -67,7 +67,7 @@ ENCODER_KEYS = frozenset({
 def _check_keys(data: Mapping[str, Any], allowed: frozenset, source: str, what: str) -> None:
     unknown = sorted(str(k) for k in data if k not in allowed)
     if unknown:
-        raise CheckpointError(f"{source}: unknown entries {unknown} in a {what} (trakdis writes only "
+        raise FileFormatError(f"{source}: unknown entries {unknown} in a {what} (trakdis writes only "
                               f"{sorted(allowed - {'format'})}): refused rather than loaded unread")
 
 
@@ -75,7 +75,7 @@ def _check_names(data: Mapping[str, Any], path: Path, keys: Sequence[str]) -> No
     """The entries ``keys`` of a file's dict, where present, strings (a tensor there would be compared as one)."""
     for key in keys:
         if data.get(key) is not None and not isinstance(data[key], str):
-            raise CheckpointError(f"{path}: {key!r} must be a name, got {type(data[key]).__name__}")
+            raise FileFormatError(f"{path}: {key!r} must be a name, got {type(data[key]).__name__}")
 
 
 def _check_extra(extra: Mapping[str, Any] | None, allowed: frozenset, what: str) -> dict[str, Any]:
@@ -107,12 +107,12 @@ def _check_ints(source: str, where: str, config: Mapping[str, Any], bounds: Mapp
         value = config[name]
         values = value if isinstance(value, (list, tuple)) else [value]
         if isinstance(value, (list, tuple)) and len(value) > limits.MAX_LAYERS:
-            raise CheckpointError(f"{source}: {where}.{name} lists {len(value)} sizes, more than "
+            raise FileFormatError(f"{source}: {where}.{name} lists {len(value)} sizes, more than "
                                   f"{limits.MAX_LAYERS} (trakdis.utils.limits.MAX_LAYERS)")
         for v in values:
             if not (limits.is_int(v) and low <= v <= high):
                 above = limits.is_int(v) and v > high and high == max_params
-                raise CheckpointError(f"{source}: {where}.{name} must be {'ints' if values is value else 'an int'} in "
+                raise FileFormatError(f"{source}: {where}.{name} must be {'ints' if values is value else 'an int'} in "
                                       f"[{low}, {high}], got {value!r}" + (
                                           f" (a size above the parameter limit{_file_limit_hint(max_params)})"
                                           if above else ""))
@@ -126,42 +126,42 @@ def _check_model_size(source: str, where: str, build: Callable[[], nn.Module], *
         with torch.device("meta"):
             params = sum(p.numel() for p in build().parameters()) * copies
     except (TypeError, ValueError, RuntimeError, KeyError, IndexError) as err:
-        raise CheckpointError(f"{source}: {where} does not describe a model ({type(err).__name__}: {err})") from err
+        raise FileFormatError(f"{source}: {where} does not describe a model ({type(err).__name__}: {err})") from err
     if params > max_params:
-        raise CheckpointError(f"{source}: {where} describes a model of {params:,} parameters, more than the limit of "
+        raise FileFormatError(f"{source}: {where} describes a model of {params:,} parameters, more than the limit of "
                               f"{max_params:,}{_file_limit_hint(max_params)}")
     if activation_bytes > max_activation_bytes:
-        raise CheckpointError(f"{source}: {where} needs about {activation_bytes / 2**20:,.0f} MiB of activations per "
+        raise FileFormatError(f"{source}: {where} needs about {activation_bytes / 2**20:,.0f} MiB of activations per "
                               f"acting window, more than the limit of {max_activation_bytes / 2**20:,.0f} MiB "
                               f"(trakdis.utils.limits.MAX_ACTIVATION_BYTES; load_policy(max_activation_bytes=...))")
 
 
 def _dt_config(source: str, raw: Any, *, where: str = "dt_config", max_params: int, max_activation_bytes: int):
-    """The :class:`~trakdis.modules.DTConfig` of a file's ``where`` entry, once its sizes are within the limits."""
+    """The :class:`~trakdis.modules.DTModelConfig` of a file's ``where`` entry, once its sizes are within the limits."""
     if not isinstance(raw, Mapping):
-        raise CheckpointError(f"{source}: '{where}' must be a dict of DTConfig fields, got {type(raw).__name__}")
-    unknown = sorted(str(k) for k in raw if k not in {f.name for f in dataclasses.fields(DTConfig)})
+        raise FileFormatError(f"{source}: '{where}' must be a dict of DTModelConfig fields, got {type(raw).__name__}")
+    unknown = sorted(str(k) for k in raw if k not in {f.name for f in dataclasses.fields(DTModelConfig)})
     if unknown:
-        raise CheckpointError(f"{source}: {where} has unknown fields {unknown}")
+        raise FileFormatError(f"{source}: {where} has unknown fields {unknown}")
     width = (1, max_params)
     _check_ints(source, where, raw, {"state_dim": width, "action_dim": width, "embed_dim": width, "n_head": width,
                                      "n_layer": (1, limits.MAX_LAYERS), "context_len": width, "max_timestep": width,
                                      "mlp_ratio": (1, 1024)}, max_params)
     for name in ("dropout", "attn_dropout", "log_std_min", "log_std_max", "init_log_std", "loc_bound"):
         if raw.get(name) is not None and not limits.is_number(raw[name]):
-            raise CheckpointError(f"{source}: {where}.{name} must be a finite number, got {raw[name]!r}")
+            raise FileFormatError(f"{source}: {where}.{name} must be a finite number, got {raw[name]!r}")
     hidden = raw.get("hidden_action_dims")
     if hidden is not None and not (isinstance(hidden, (list, tuple)) and len(hidden) <= raw.get("action_dim", 0)
                                    and all(limits.is_int(d) for d in hidden)):
-        raise CheckpointError(f"{source}: {where}.hidden_action_dims must be a list of action dims, got {hidden!r}")
+        raise FileFormatError(f"{source}: {where}.hidden_action_dims must be a list of action dims, got {hidden!r}")
     if not isinstance(raw.get("activation", "gelu"), str):
-        raise CheckpointError(f"{source}: {where}.activation must be a name, got {raw['activation']!r}")
+        raise FileFormatError(f"{source}: {where}.activation must be a name, got {raw['activation']!r}")
     try:
-        cfg = DTConfig(**raw)
+        cfg = DTModelConfig(**raw)
     except (TypeError, ValueError) as err:
-        raise CheckpointError(f"{source}: {where} is not a valid DTConfig ({err})") from err
+        raise FileFormatError(f"{source}: {where} is not a valid DTModelConfig ({err})") from err
     if cfg.state_dim is None or cfg.action_dim is None:
-        raise CheckpointError(f"{source}: {where} lacks state_dim or action_dim")
+        raise FileFormatError(f"{source}: {where} lacks state_dim or action_dim")
     tokens, d = 3 * cfg.context_len, cfg.embed_dim  # a window's return, state and action tokens
     per_layer = cfg.n_head * tokens * tokens + tokens * d * (cfg.mlp_ratio + 8)  # attention scores, block outputs
     _check_model_size(source, where, lambda: StochasticDTActor(cfg), max_params=max_params,
@@ -189,22 +189,22 @@ _CNN_KEYS = {"state_dim", "feature_dim", "image_size", "channels", "hidden_dim",
 def _cnn_kwargs(source: str, raw: Any, where: str, *, out_key: str, max_params: int) -> dict[str, Any]:
     """A file's encoder or trunk config (``out_key``: ``state_dim`` or ``feature_dim``), its types and sizes checked."""
     if not isinstance(raw, Mapping):
-        raise CheckpointError(f"{source}: '{where}' must be a dict, got {type(raw).__name__}")
+        raise FileFormatError(f"{source}: '{where}' must be a dict, got {type(raw).__name__}")
     allowed = _CNN_KEYS - ({"state_dim", "feature_dim"} - {out_key}) - ({"pad"} if out_key == "state_dim" else set())
     unknown = sorted(str(k) for k in raw if k not in allowed)
     if unknown or out_key not in raw:
-        raise CheckpointError(f"{source}: {where} must hold {out_key} and may hold {sorted(allowed - {out_key})}; "
+        raise FileFormatError(f"{source}: {where} must hold {out_key} and may hold {sorted(allowed - {out_key})}; "
                               f"got unknown {unknown}" if unknown else f"{source}: {where} lacks {out_key!r}")
     width = (1, max_params)
     _check_ints(source, where, raw, {out_key: width, "image_size": (11, 4096), "channels": width,
                                      "hidden_dim": width, "stem_stride": (1, 2), "pad": (0, 64)}, max_params)
     if "channels" in raw and not (isinstance(raw["channels"], (list, tuple)) and len(raw["channels"]) == 4):
-        raise CheckpointError(f"{source}: {where}.channels must list the 4 conv layers' channels, "
+        raise FileFormatError(f"{source}: {where}.channels must list the 4 conv layers' channels, "
                               f"got {raw['channels']!r}")
     if raw.get("head", "flatten") not in ("flatten", "keypoints"):
-        raise CheckpointError(f"{source}: {where}.head must be 'flatten' or 'keypoints', got {raw.get('head')!r}")
+        raise FileFormatError(f"{source}: {where}.head must be 'flatten' or 'keypoints', got {raw.get('head')!r}")
     if not isinstance(raw.get("coord_channels", False), bool):
-        raise CheckpointError(f"{source}: {where}.coord_channels must be true or false, got {raw['coord_channels']!r}")
+        raise FileFormatError(f"{source}: {where}.coord_channels must be true or false, got {raw['coord_channels']!r}")
     return dict(raw)
 
 
@@ -212,28 +212,28 @@ def _check_encoder_dict(data: Any, source: str, *, max_params: int, max_activati
     """An encoder file's dict (or a student's ``encoder`` entry): its entries, types and sizes, before
     :func:`encoder_from_dict` builds anything."""
     if not isinstance(data, Mapping):
-        raise CheckpointError(f"{source}: the encoder must be a dict, got {type(data).__name__}")
+        raise FileFormatError(f"{source}: the encoder must be a dict, got {type(data).__name__}")
     _check_keys(data, ENCODER_KEYS, source, "encoder file")
     missing = [k for k in ("encoder_kwargs", "state_dict") if k not in data]
     if missing:
-        raise CheckpointError(f"encoder file {source} lacks {missing}")
+        raise FileFormatError(f"encoder file {source} lacks {missing}")
     if not isinstance(data["state_dict"], Mapping):
-        raise CheckpointError(f"{source}: the encoder's 'state_dict' must be a dict of tensors")
+        raise FileFormatError(f"{source}: the encoder's 'state_dict' must be a dict of tensors")
     kw = {**_EARLIER_ENCODER_LAYOUT, **_cnn_kwargs(source, data["encoder_kwargs"], "encoder_kwargs",
                                                     out_key="state_dim", max_params=max_params)}
     ensemble, members = data.get("ensemble"), 1
     if ensemble:
         if not isinstance(ensemble, Mapping) or set(ensemble) - {"members", "state_mirror"}:
-            raise CheckpointError(f"{source}: 'ensemble' must be {{'members': n, 'state_mirror': ...}}, "
+            raise FileFormatError(f"{source}: 'ensemble' must be {{'members': n, 'state_mirror': ...}}, "
                                   f"got {ensemble!r}")
         members = ensemble.get("members")
         if not (limits.is_int(members) and 1 <= members <= limits.MAX_MEMBERS):
-            raise CheckpointError(f"{source}: 'ensemble' needs 'members' >= 1 and <= {limits.MAX_MEMBERS} "
+            raise FileFormatError(f"{source}: 'ensemble' needs 'members' >= 1 and <= {limits.MAX_MEMBERS} "
                                   f"(trakdis.utils.limits.MAX_MEMBERS), got {members!r}")
         mirror = ensemble.get("state_mirror")
         if mirror is not None and not (isinstance(mirror, (list, tuple)) and len(mirror) == 2 and all(
                 isinstance(m, (list, tuple)) and len(m) == kw["state_dim"] for m in mirror)):
-            raise CheckpointError(f"{source}: ensemble.state_mirror must be (permutation, signs) of the state's "
+            raise FileFormatError(f"{source}: ensemble.state_mirror must be (permutation, signs) of the state's "
                                   f"{kw['state_dim']} dims, got {mirror!r}")
     state_dim = kw.pop("state_dim")
     _check_model_size(source, "encoder_kwargs", lambda: StateEncoder(state_dim, **kw), copies=members,
@@ -244,29 +244,29 @@ def _check_encoder_dict(data: Any, source: str, *, max_params: int, max_activati
 def _policy_fields(data: Mapping[str, Any], path: Path) -> None:
     """The plain entries of a policy file, typed and within range (:mod:`trakdis.utils.limits`)."""
     if not isinstance(data["task"], str) or data["task"] not in TASKS:
-        raise CheckpointError(f"{path}: 'task' must be one of {list(TASKS)}, got {data['task']!r}")
+        raise FileFormatError(f"{path}: 'task' must be one of {list(TASKS)}, got {data['task']!r}")
     horizon = data.get("horizon")
     if not (limits.is_int(horizon) and 1 <= horizon <= limits.MAX_HORIZON):
-        raise CheckpointError(f"{path}: 'horizon' must be an int in [1, {limits.MAX_HORIZON}] "
+        raise FileFormatError(f"{path}: 'horizon' must be an int in [1, {limits.MAX_HORIZON}] "
                               f"(trakdis.utils.limits.MAX_HORIZON), got {horizon!r}")
     if not isinstance(data["observation_key"], str):
-        raise CheckpointError(f"{path}: 'observation_key' must be a key name, got {data['observation_key']!r}")
+        raise FileFormatError(f"{path}: 'observation_key' must be a key name, got {data['observation_key']!r}")
     for name in ("target_return", "rtg_scale"):
         if name in data and not limits.is_number(data[name]):
-            raise CheckpointError(f"{path}: {name!r} must be a finite number, got {data[name]!r}")
+            raise FileFormatError(f"{path}: {name!r} must be a finite number, got {data[name]!r}")
     if "rtg_scale" in data and not data["rtg_scale"] > 0:
-        raise CheckpointError(f"{path}: 'rtg_scale' must be > 0, got {data['rtg_scale']!r}")
+        raise FileFormatError(f"{path}: 'rtg_scale' must be > 0, got {data['rtg_scale']!r}")
     if not isinstance(data["actor"], Mapping):
-        raise CheckpointError(f"{path}: 'actor' must be a dict of tensors, got {type(data['actor']).__name__}")
+        raise FileFormatError(f"{path}: 'actor' must be a dict of tensors, got {type(data['actor']).__name__}")
     for name in ("normalizer", "encoder"):
         if data.get(name) is not None and not isinstance(data[name], Mapping):
-            raise CheckpointError(f"{path}: {name!r} must be a dict or null, got {type(data[name]).__name__}")
+            raise FileFormatError(f"{path}: {name!r} must be a dict or null, got {type(data[name]).__name__}")
     dims = data.get("proprio_dims") or ()
     if not (isinstance(dims, (list, tuple)) and len(dims) <= 4096 and all(limits.is_int(d) and d >= 0 for d in dims)):
-        raise CheckpointError(f"{path}: 'proprio_dims' must be a list of state dims, got {dims!r}")
+        raise FileFormatError(f"{path}: 'proprio_dims' must be a list of state dims, got {dims!r}")
     if not isinstance(data.get("picker_odometry", False), bool):
-        raise CheckpointError(f"{path}: 'picker_odometry' must be true or false, got {data['picker_odometry']!r}")
-    limits.check_env_kwargs(data.get("env_kwargs"), str(path), error=CheckpointError)
+        raise FileFormatError(f"{path}: 'picker_odometry' must be true or false, got {data['picker_odometry']!r}")
+    limits.check_env_kwargs(data.get("env_kwargs"), str(path), error=FileFormatError)
 
 
 # --------------------------------------------------------------------------- encoder files
@@ -291,15 +291,15 @@ def save_encoder(path: str | Path, encoder: NormalizedEncoder | EncoderEnsemble,
 
 
 def check_render_version(data: Mapping[str, Any], task: str, source: str) -> None:
-    """Refuse (:class:`~trakdis.utils.checkpoint.CheckpointError`) a model file whose image network
+    """Refuse (:class:`~trakdis.utils.checkpoint.FileFormatError`) a model file whose image network
     was trained on another rendering of ``task`` than today's (:func:`trakdis.envs.render_version`):
     it would read images unlike its training images. Files written before the version was recorded
     count as version 2 (the 35 mm picker markers, before the unpinned fold's wider camera)."""
     found, current = data.get("render_version", 2), render_version(task)
     if not limits.is_int(found):
-        raise CheckpointError(f"{source}: 'render_version' must be an int, got {found!r}")
+        raise FileFormatError(f"{source}: 'render_version' must be an int, got {found!r}")
     if found != current:
-        raise CheckpointError(f"{source}: its image network was trained on {task} images of rendering version "
+        raise FileFormatError(f"{source}: its image network was trained on {task} images of rendering version "
                               f"{found}; this trakdis renders {task} at version {current} (docs/tasks.md), so it "
                               f"would read other images than it learnt from: train it again")
 
@@ -307,15 +307,15 @@ def check_render_version(data: Mapping[str, Any], task: str, source: str) -> Non
 def encoder_from_dict(data: Mapping[str, Any], *, source: str = "encoder file", max_params: int = limits.MAX_PARAMS,
                       max_activation_bytes: int = limits.MAX_ACTIVATION_BYTES) -> NormalizedEncoder | EncoderEnsemble:
     """The encoder of an encoder file's dict (read from ``source``), once its entries, types and sizes
-    pass the checks (:mod:`trakdis.utils.limits`; a :class:`~trakdis.utils.checkpoint.CheckpointError`
+    pass the checks (:mod:`trakdis.utils.limits`; a :class:`~trakdis.utils.checkpoint.FileFormatError`
     naming ``source`` otherwise)."""
     _check_encoder_dict(data, source, max_params=max_params, max_activation_bytes=max_activation_bytes)
     try:
         return _encoder_from_dict(data)
-    except CheckpointError as err:
-        raise CheckpointError(f"{source}: {err}") from err
+    except FileFormatError as err:
+        raise FileFormatError(f"{source}: {err}") from err
     except (TypeError, KeyError, AttributeError, IndexError, ValueError) as err:
-        raise CheckpointError(f"{source}: a malformed encoder entry ({type(err).__name__}: {err})") from err
+        raise FileFormatError(f"{source}: a malformed encoder entry ({type(err).__name__}: {err})") from err
 
 
 def _encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder | EncoderEnsemble:
@@ -334,7 +334,7 @@ def _encoder_from_dict(data: Mapping[str, Any]) -> NormalizedEncoder | EncoderEn
     try:
         enc.load_state_dict(data["state_dict"])
     except (RuntimeError, TypeError, AttributeError) as err:
-        raise CheckpointError(f"encoder weights do not match its encoder_kwargs {data['encoder_kwargs']} "
+        raise FileFormatError(f"encoder weights do not match its encoder_kwargs {data['encoder_kwargs']} "
                               f"(ensemble {ensemble}): {err}") from err
     return enc.eval()
 
@@ -348,14 +348,14 @@ def load_encoder(path: str | Path, *, task: str | None = None, max_params: int =
     path = Path(path)
     if path.is_dir():
         path = path / "encoder.pt"
-    data = load_checkpoint(path, required=("kind",), max_bytes=_file_max_bytes(max_params),
+    data = read_checkpoint(path, required=("kind",), max_bytes=_file_max_bytes(max_params),
                            limit_hint=_file_limit_hint(max_params))
     _check_names(data, path, ("kind", "task"))
     if data["kind"] != "encoder":
-        raise CheckpointError(f"{path} is a {data['kind']!r} file, not an encoder (train one with recipes/train_encoder.py)")
+        raise FileFormatError(f"{path} is a {data['kind']!r} file, not an encoder (train one with recipes/train_encoder.py)")
     missing = [k for k in ("encoder_kwargs", "state_dict") if k not in data]
     if missing:
-        raise CheckpointError(f"encoder file {path} lacks {missing}")
+        raise FileFormatError(f"encoder file {path} lacks {missing}")
     _check_keys(data, ENCODER_KEYS, str(path), "encoder file")
     if task is not None and data.get("task") != task:
         raise ValueError(f"encoder {path} is for {data.get('task')}, not {task}")
@@ -397,15 +397,15 @@ def read_policy_file(path: str | Path, *, task: str | None = None, device: str =
     range (``env_kwargs``: :func:`~trakdis.utils.limits.check_env_kwargs`), and describe models of at
     most ``max_params`` parameters and ``max_activation_bytes`` of activations per acting window
     (estimated from its configs before anything is built; raise them for a larger policy you trust).
-    Anything else is a :class:`~trakdis.utils.checkpoint.CheckpointError` naming the file and the entry."""
+    Anything else is a :class:`~trakdis.utils.checkpoint.FileFormatError` naming the file and the entry."""
     path = Path(path)
     if path.is_dir():
         path = path / "policy.pt"
-    data = load_checkpoint(path, required=("kind", "task", "actor", "observation_key"),
+    data = read_checkpoint(path, required=("kind", "task", "actor", "observation_key"),
                            max_bytes=_file_max_bytes(max_params), limit_hint=_file_limit_hint(max_params))
     _check_names(data, path, ("kind", "task", "observation_key"))
     if data["kind"] not in ("teacher", "student", *IMAGE_POLICY_KINDS):
-        raise CheckpointError(f"{path}: kind {data['kind']!r} is not a policy (expected one of "
+        raise FileFormatError(f"{path}: kind {data['kind']!r} is not a policy (expected one of "
                               f"teacher, student, {', '.join(IMAGE_POLICY_KINDS)})")
     _check_keys(data, POLICY_KEYS, str(path), f"{data['kind']} policy file")
     _policy_fields(data, path)
@@ -416,17 +416,17 @@ def read_policy_file(path: str | Path, *, task: str | None = None, device: str =
         if data["kind"] in IMAGE_POLICY_KINDS:
             return _image_policy_fields(path, data, device=device, **sizes)
         return _dt_policy_fields(path, data, device=device, **sizes)
-    except CheckpointError:
+    except FileFormatError:
         raise
     except (TypeError, KeyError, AttributeError, IndexError, ValueError) as err:  # a field of an unexpected form
-        raise CheckpointError(f"{path}: a malformed policy file ({type(err).__name__}: {err})") from err
+        raise FileFormatError(f"{path}: a malformed policy file ({type(err).__name__}: {err})") from err
 
 
 def _dt_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, max_params: int,
                       max_activation_bytes: int) -> dict[str, Any]:
     """A teacher's or student's policy from its checked file dict (:func:`read_policy_file`)."""
     if "dt_config" not in data:
-        raise CheckpointError(f"{path}: a {data['kind']} policy file lacks 'dt_config'")
+        raise FileFormatError(f"{path}: a {data['kind']} policy file lacks 'dt_config'")
     cfg = _dt_config(str(path), data["dt_config"], max_params=max_params, max_activation_bytes=max_activation_bytes)
     encoder = None
     if data.get("encoder"):
@@ -437,12 +437,12 @@ def _dt_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, max_p
     try:
         actor.load_state_dict(data["actor"])
     except RuntimeError as err:
-        raise CheckpointError(f"{path}: actor weights do not match its dt_config: {err}") from err
+        raise FileFormatError(f"{path}: actor weights do not match its dt_config: {err}") from err
     if data.get("encoder"):
         encoder = encoder_from_dict(data["encoder"], source=f"{path} (its encoder)", max_params=max_params,
                                     max_activation_bytes=max_activation_bytes)
     if data["kind"] == "student" and encoder is None:
-        raise CheckpointError(f"{path}: a student policy file must contain its encoder")
+        raise FileFormatError(f"{path}: a student policy file must contain its encoder")
     return dict(
         kind=data["kind"], task=data["task"], horizon=data["horizon"], actor=actor.eval(), encoder=encoder,
         observation_key=data["observation_key"], target_return=data["target_return"],
@@ -482,7 +482,7 @@ def _image_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, ma
     config_key = "bc_config" if data["kind"] == "bc_image" else "dt_config"
     missing = [k for k in (config_key, "trunk_config", "trunk") if k not in data]
     if missing:
-        raise CheckpointError(f"{path}: a {data['kind']} policy file lacks {missing}")
+        raise FileFormatError(f"{path}: a {data['kind']} policy file lacks {missing}")
     check_render_version(data, data["task"], str(path))
     sizes = dict(max_params=max_params, max_activation_bytes=max_activation_bytes)
     trunk_kw = _cnn_kwargs(str(path), data["trunk_config"], "trunk_config", out_key="feature_dim", max_params=max_params)
@@ -496,7 +496,7 @@ def _image_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, ma
         try:
             bc_cfg = BCConfig(**bc)
         except (TypeError, ValueError) as err:
-            raise CheckpointError(f"{path}: {config_key} is not a valid BCConfig ({err})") from err
+            raise FileFormatError(f"{path}: {config_key} is not a valid BCConfig ({err})") from err
         _check_model_size(str(path), config_key, lambda: BCHead(bc_cfg), **sizes)
     else:
         dt_cfg = _dt_config(str(path), data[config_key], **sizes)
@@ -504,7 +504,7 @@ def _image_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, ma
         trunk = ImageTrunk.from_config(trunk_kw).to(device)
         trunk.load_state_dict(data["trunk"])
     except (TypeError, ValueError, RuntimeError) as err:
-        raise CheckpointError(f"{path}: the CNN trunk does not match its trunk_config {data['trunk_config']}: {err}") from err
+        raise FileFormatError(f"{path}: the CNN trunk does not match its trunk_config {data['trunk_config']}: {err}") from err
     if data["kind"] == "bc_image":
         actor = make_bc_actor(bc_cfg, observation_key=data["observation_key"], device=device)
     else:
@@ -512,7 +512,7 @@ def _image_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, ma
     try:
         actor.load_state_dict(data["actor"])
     except RuntimeError as err:
-        raise CheckpointError(f"{path}: actor weights do not match its {config_key}: {err}") from err
+        raise FileFormatError(f"{path}: actor weights do not match its {config_key}: {err}") from err
     return dict(
         kind=data["kind"], task=data["task"], horizon=data["horizon"], actor=actor.eval(),
         encoder=trunk.eval(), observation_key=data["observation_key"], target_return=data.get("target_return", 0.0),

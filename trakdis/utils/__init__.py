@@ -4,10 +4,10 @@
 loggers), OpenCV plots, atomic writes and checkpoints, RNG state, phase timers, videos and
 progress bars."""
 from .checkpoint import (
-    CheckpointError,
+    FileFormatError,
     atomic_write_bytes,
     capture_state,
-    load_checkpoint,
+    read_checkpoint,
     restore_state,
     rng_state,
     save_checkpoint,
@@ -28,10 +28,10 @@ from .run import Run, RunConfig, seed_everything
 from .video import VideoWriter, side_by_side, write_video
 
 __all__ = [
-    "CheckpointError",
+    "FileFormatError",
     "atomic_write_bytes",
     "capture_state",
-    "load_checkpoint",
+    "read_checkpoint",
     "restore_state",
     "rng_state",
     "save_checkpoint",

@@ -49,8 +49,8 @@ from .limits import check_zip_archive, open_regular_file
 __all__ = [
     "atomic_write_bytes",
     "save_checkpoint",
-    "load_checkpoint",
-    "CheckpointError",
+    "read_checkpoint",
+    "FileFormatError",
     "remove_stale_temporaries",
     "rng_state",
     "set_rng_state",
@@ -61,8 +61,11 @@ __all__ = [
 _FORMAT = "trakdis-checkpoint"
 
 
-class CheckpointError(RuntimeError):
-    """A checkpoint is missing, unreadable or lacks an expected entry."""
+class FileFormatError(RuntimeError):
+    """A file trakdis reads back (a resume checkpoint, a policy or encoder file: :func:`save_checkpoint`'s
+    format) is missing, unreadable, refused (docs/security.md), or lacks or mistypes an expected entry.
+
+    Not TorchRL's ``torchrl.checkpoint.CheckpointError`` (the failures of its ``Checkpoint`` directories)."""
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -155,7 +158,7 @@ def _numpy_array_globals() -> list:
     return [core.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
-def load_checkpoint(
+def read_checkpoint(
     path: str | Path,
     *,
     required: Iterable[str] = (),
@@ -164,7 +167,8 @@ def load_checkpoint(
     max_bytes: int | None = None,
     limit_hint: str = "",
 ) -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint`.
+    """Read a checkpoint written by :func:`save_checkpoint` (not TorchRL's ``torchrl.render.load_checkpoint``:
+    this one checks the file before unpickling it and refuses files trakdis did not write).
 
     The file is read with ``torch.load(weights_only=True)`` (tensors, containers, numbers and
     strings only): a file holding anything else, e.g. an object whose unpickling would run code,
@@ -176,19 +180,19 @@ def load_checkpoint(
     :data:`~trakdis.utils.limits.MAX_EXPANSION` times its size, and to at most ``max_bytes`` when
     given (``limit_hint``: how the caller raises that limit, for the error).
 
-    Raises :class:`CheckpointError` naming the file when it is missing, not a regular file, not a
+    Raises :class:`FileFormatError` naming the file when it is missing, not a regular file, not a
     checkpoint, too large, unreadable, holds types the safe loader refuses, is not a trakdis
     checkpoint, or lacks one of the ``required`` keys.
     """
     path = Path(path)
-    with open_regular_file(path, error=CheckpointError, what="checkpoint") as fh:
-        check_zip_archive(path, max_bytes=max_bytes, error=CheckpointError, hint=limit_hint)
+    with open_regular_file(path, error=FileFormatError, what="checkpoint") as fh:
+        check_zip_archive(path, max_bytes=max_bytes, error=FileFormatError, hint=limit_hint)
         state = _torch_load(path, fh, map_location=map_location, numpy_arrays=numpy_arrays)
     if not isinstance(state, dict) or state.get("format") != _FORMAT:
-        raise CheckpointError(f"{path} is not a trakdis checkpoint (no 'format': {_FORMAT!r} entry)")
+        raise FileFormatError(f"{path} is not a trakdis checkpoint (no 'format': {_FORMAT!r} entry)")
     missing = [k for k in required if k not in state]
     if missing:
-        raise CheckpointError(f"checkpoint {path} lacks {missing}; it has {sorted(k for k in state if k != 'format')}")
+        raise FileFormatError(f"checkpoint {path} lacks {missing}; it has {sorted(k for k in state if k != 'format')}")
     return state
 
 
@@ -200,14 +204,14 @@ def _torch_load(path: Path, fh, *, map_location, numpy_arrays: bool) -> Any:
         lines = str(err).strip().splitlines() or [""]
         if not any("GLOBAL" in line or "global" in line for line in lines):  # damaged, not a refused type
             detail = next((line for line in lines if "Unsupported" in line), lines[-1]).strip()
-            raise CheckpointError(f"{path} is not a valid checkpoint: its contents are damaged ({detail})") from err
+            raise FileFormatError(f"{path} is not a valid checkpoint: its contents are damaged ({detail})") from err
         detail = next((line for line in lines if "GLOBAL" in line), lines[-1]).split(" Please use")[0].strip()
-        raise CheckpointError(
+        raise FileFormatError(
             f"checkpoint {path} was refused: it holds objects other than tensors, containers and numbers, "
             f"which trakdis never loads from a file (torch.load(weights_only=True); docs/security.md). {detail}"
         ) from err
     except Exception as err:
-        raise CheckpointError(f"checkpoint {path} could not be read ({type(err).__name__}: {err})") from err
+        raise FileFormatError(f"checkpoint {path} could not be read ({type(err).__name__}: {err})") from err
 
 
 # --------------------------------------------------------------------------- RNG
@@ -255,12 +259,12 @@ def restore_state(state: Mapping[str, Any], objects: Mapping[str, Any], *, resto
     """Load ``state[name]`` into ``objects[name]`` via ``load_state_dict``; restore RNG states."""
     for name, obj in objects.items():
         if name not in state:
-            raise CheckpointError(f"checkpoint has no entry {name!r}; it has {sorted(state)}")
+            raise FileFormatError(f"checkpoint has no entry {name!r}; it has {sorted(state)}")
         if not hasattr(obj, "load_state_dict"):
             raise TypeError(f"cannot restore {name!r}: {type(obj).__name__} has no load_state_dict")
         try:
             obj.load_state_dict(state[name])
         except Exception as err:
-            raise CheckpointError(f"restoring {name!r} from the checkpoint failed: {err}") from err
+            raise FileFormatError(f"restoring {name!r} from the checkpoint failed: {err}") from err
     if restore_rng and "rng" in state:
         set_rng_state(state["rng"])

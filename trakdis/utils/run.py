@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torchrl.record.loggers import Logger
 
-from .checkpoint import (CheckpointError, load_checkpoint, remove_stale_temporaries, rng_state, save_checkpoint,
+from .checkpoint import (FileFormatError, read_checkpoint, remove_stale_temporaries, rng_state, save_checkpoint,
                          set_rng_state)
 from .config import load_config, parse_config, save_config
 from .limits import MAX_SEED, check_option
@@ -203,10 +203,10 @@ class Run:
             if run.checkpoint_path.exists():
                 # One's own file, yet read like any other (weights_only); NumPy arrays are allowed
                 # for checkpoints written before the RNG state was stored as plain types.
-                run._resume_state = load_checkpoint(run.checkpoint_path, map_location="cpu", numpy_arrays=True)
+                run._resume_state = read_checkpoint(run.checkpoint_path, map_location="cpu", numpy_arrays=True)
                 saved_by = run._resume_state.get("recipe")
                 if saved_by is not None and saved_by != recipe:
-                    raise CheckpointError(f"--resume: {run.checkpoint_path} is a checkpoint of {saved_by}, not of "
+                    raise FileFormatError(f"--resume: {run.checkpoint_path} is a checkpoint of {saved_by}, not of "
                                           f"{recipe}: it cannot continue this run")
                 run.print(f"resuming {directory} from step {run._resume_state.get('step', 0)}")
             else:
@@ -333,7 +333,7 @@ class RunState(dict):
             if counters_key is None:
                 self.update({k: self.checkpoint[k] for k in counters if k in self.checkpoint})
             elif not isinstance(self.checkpoint.get(counters_key), Mapping):
-                raise CheckpointError(f"--resume: {run.checkpoint_path} has no {counters_key!r} entry of "
+                raise FileFormatError(f"--resume: {run.checkpoint_path} has no {counters_key!r} entry of "
                                       f"{run.recipe}'s counters: not a checkpoint of this recipe")
             else:
                 self.update(self.checkpoint[counters_key])
@@ -351,7 +351,7 @@ class RunState(dict):
         if self.checkpoint is not None:
             for name in names or tuple(self.objects):
                 if name not in self.checkpoint:
-                    raise CheckpointError(f"--resume: {self.run.checkpoint_path} has no {name!r} entry; it has "
+                    raise FileFormatError(f"--resume: {self.run.checkpoint_path} has no {name!r} entry; it has "
                                           f"{sorted(self.checkpoint)}")
                 self.objects[name].load_state_dict(self.checkpoint[name])
 
