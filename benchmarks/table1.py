@@ -22,9 +22,9 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
 * ``evaluate.py`` for each of them and for the scripted expert: ``--trials`` eval-split episodes,
   the same configurations for every method of a seed;
 * the robustness study (the paper's Fig. 7; with TraKDis, unless ``--noise-levels`` is empty): a
-  second student distilled with ``--train-noise`` of Gaussian noise on its estimated state
-  (``distill.py --state-noise``), and both students evaluated at each of ``--noise-levels``
-  (``evaluate.py --state-noise``, ``--noise-trials`` episodes per level, the same configurations;
+  second student distilled with ``--estimate-noise`` of Gaussian noise on its estimated state
+  (``distill.py --estimate-noise``), and both students evaluated at each of ``--noise-levels``
+  (``evaluate.py --noise-levels``, ``--noise-trials`` episodes per level, the same configurations;
   TraKDis at noise 0 is its own evaluation above when the two trial counts agree, not played again).
 
 A stage whose output file exists is skipped and an interrupted one resumed, so ``--resume`` (or
@@ -52,7 +52,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import pandas as pd
@@ -139,8 +139,10 @@ class Table1Config(RunConfig):
     noise_levels: tuple[float, ...] = (0.0, 1e-5, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
     """robustness study: std of the Gaussian noise on the estimated state at evaluation, in metres
     (1e-3: 1 mm), the paper's 0 .. 1e-3 and larger ones until the score halves; none: no study"""
-    train_noise: float = 1e-3
-    """std of the noise the robust student is distilled with (metres; the paper's 1e-3)"""
+    estimate_noise: float = 1e-3
+    """std of the noise on the estimated state the robust student is distilled with (distill.py --estimate-noise;
+    metres; the paper's 1e-3)"""
+    SAVED_AS: ClassVar[dict] = {"train_noise": "estimate_noise"}  # the option's earlier name (--train-noise)
     noise_trials: int = 0
     """evaluation episodes per noise level and student (0: --trials, and TraKDis's noise-free level is then
     its --trials evaluation)"""
@@ -162,9 +164,9 @@ class Table1Config(RunConfig):
         if self.seeds < 1 or self.trials < 1 or self.noise_trials < 0:
             raise ValueError(f"--seeds {self.seeds} / --trials {self.trials}: both must be >= 1; "
                              f"--noise-trials {self.noise_trials}: >= 0")
-        bad = [s for s in (*self.noise_levels, self.train_noise) if not (np.isfinite(s) and s >= 0)]
+        bad = [s for s in (*self.noise_levels, self.estimate_noise) if not (np.isfinite(s) and s >= 0)]
         if bad:
-            raise ValueError(f"--noise-levels / --train-noise: every std must be finite and >= 0, got {bad[0]!r}")
+            raise ValueError(f"--noise-levels / --estimate-noise: every std must be finite and >= 0, got {bad[0]!r}")
         if self.noise_levels and 0.0 not in self.noise_levels:
             raise ValueError(f"--noise-levels {list(self.noise_levels)}: include 0 (the noise-free score "
                              "that the others are compared with)")
@@ -263,8 +265,8 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     robust = {}
     if cfg.noise_levels and "trakdis" in methods:
         students = {"trakdis": policies["trakdis"],
-                    "trakdis_noise": student_stage(f"{chain}-trakdis_noise", encoder, "--state-noise",
-                                                   str(cfg.train_noise))}
+                    "trakdis_noise": student_stage(f"{chain}-trakdis_noise", encoder, "--estimate-noise",
+                                                   str(cfg.estimate_noise))}
         trials = cfg.noise_trials or cfg.trials
         for method, policy in students.items():
             # TraKDis's own evaluation is its noise-free level (the same seed, trials and workers: the same
@@ -274,7 +276,7 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
             robust[method] = ((evals["trakdis"],) if reuse else ()) + (
                 (evaluation(f"{chain}-noise-{method}", "summary.csv",
                             ["--policy", str(policy), "--trials", str(trials), "--videos", "0", *parallel,
-                             "--state-noise", *levels]),) if levels else ())
+                             "--noise-levels", *levels]),) if levels else ())
     students = {m: policies[m] for m in CURVE_METHODS if m in policies}
     return {m: evals[m] for m in METHODS if m in evals}, robust, students
 
@@ -487,12 +489,12 @@ def write_robustness(run: Run, cfg: Table1Config,
             halved = next((lv for lv, k in zip(levels, kept) if k <= 0.5), None)
             rows += [{"task": task, "method": method, "state_noise": lv, **st, "kept": k, "change": d, "change_se": se}
                      for lv, st, k, (d, se) in zip(levels, stats, kept, paired)]
-            trained_at = levels.index(cfg.train_noise) if cfg.train_noise in levels else None
+            trained_at = levels.index(cfg.estimate_noise) if cfg.estimate_noise in levels else None
             wide.append({"task": task, "student": LABELS[method],
                          **{f"{lv:g}": f"{st['mean']:.3f} +- {st['std']:.3f}" + (f" ({k:.0%})" if np.isfinite(k) else "")
                             for lv, st, k in zip(levels, stats, kept)},
                          "halves at": "-" if halved is None else f"{halved:g}",
-                         **({f"change at {cfg.train_noise:g} (paired)":
+                         **({f"change at {cfg.estimate_noise:g} (paired)":
                              f"{paired[trained_at][0]:+.3f} +- {paired[trained_at][1]:.3f}"} if trained_at is not None else {})})
             curves[LABELS[method]] = (np.arange(len(levels)), np.array([[f.mean() for f in per] for per in finals]).T)
         if curves:
@@ -505,7 +507,7 @@ def write_robustness(run: Run, cfg: Table1Config,
             f"Each cell: mean +- std over all episodes of all seeds ({cfg.noise_trials or cfg.trials} per level and "
             f"seed) and, in brackets, the share of the noise-free score kept (none when that score is <= 0); "
             "the state is in metres (1e-3: 1 mm). "
-            f"'TraKDis+noise': distilled with noise of std {cfg.train_noise:g}. "
+            f"'TraKDis+noise': distilled with noise of std {cfg.estimate_noise:g}. "
             "'halves at': the smallest level that keeps half of the noise-free score or less ('-': none); "
             "'change (paired)': the score at that level minus the noise-free one on the same configurations, "
             "mean +- standard error over episodes.", "",

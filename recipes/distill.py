@@ -13,7 +13,9 @@ from __future__ import annotations
 import dataclasses
 import sys
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Annotated, ClassVar, Literal, Optional
+
+import tyro
 
 from trakdis.data import DataConfig, load_encoded_dataset, student_buffer
 from trakdis.envs import task_defaults, task_spec
@@ -37,7 +39,10 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     """initialise the student with the teacher's weights (--no-weight-copy: fresh weights, never kept by the
     selection; No-Pretrain, with --no-distill the paper's No-Distill)"""
     distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
-    state_noise: float = 0.0  # std of Gaussian noise on the estimated state of every training window (robustness)
+    # --state-noise: its earlier name, still read (the student options that earlier runs saved may hold it)
+    estimate_noise: Annotated[float, tyro.conf.arg(aliases=("--state-noise",))] = 0.0
+    """std of Gaussian noise on the estimated state of every training window (robustness)"""
+    SAVED_AS: ClassVar[dict] = {"state_noise": "estimate_noise"}  # the option's earlier name (--state-noise)
     proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
     picker_odometry: Literal["auto", "on", "off"] = "auto"
     """the encoder's picker estimates fused with the student's own commands (no proprioception); auto: on if the data's
@@ -91,7 +96,7 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
             raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
                              f"{self.data.action_labels!r} needs 'executed'")
         check_options(self, sizes=("batch_size", "buffer_capacity", "select_every", "max_params"),
-                      counts=("rounds", "updates_per_round"), nonnegative=("state_noise", "kl_coef"))
+                      counts=("rounds", "updates_per_round"), nonnegative=("estimate_noise", "kl_coef"))
         super().__post_init__()
 
     @property
@@ -154,7 +159,7 @@ def main(argv=None) -> dict:
     updater = cfg.make_updater(loss, decay_steps=cfg.rounds * cfg.updates_per_round,
                                min_lr_fraction=cfg.min_lr_fraction)
     buffer = student_buffer(cfg.buffer_capacity, dt_cfg.context_len, horizon, teacher.rtg_scale, normalizer=normalizer,
-                            distill=cfg.distill, proprio_dims=proprio_dims, state_noise=cfg.state_noise, seed=cfg.seed,
+                            distill=cfg.distill, proprio_dims=proprio_dims, state_noise=cfg.estimate_noise, seed=cfg.seed,
                             early_windows=cfg.early_windows, relabel_return_to_go=not cfg.distill or cfg.expert_data
                             or cfg.return_to_go == "hindsight")
     state = RunState(run, {"rounds": 0, "updates": 0, "initial_eval": None, "teacher_eval": None, "round_evals": {}},
@@ -193,7 +198,7 @@ def main(argv=None) -> dict:
     teacher_actor_handle = dataclasses.replace(teacher, encoder=encoder, picker_odometry=odometry)
     actors = {"teacher": [teacher_actor_handle], "student": [student_handle],
               "mixed": [teacher_actor_handle, student_handle]}[cfg.act] if cfg.distill and cfg.episodes_per_round else []
-    # Rollouts carry both the true state and the encoder's estimate (--state-noise: the buffer adds it).
+    # Rollouts carry both the true state and the encoder's estimate (--estimate-noise: the buffer adds it).
     roll_envs = [cfg.make_env(h, "train") for h in actors]
     state.restore_rng()  # after building the envs, so the RNG streams continue exactly
     with RunEnvs(None, eval_env, select_env, *roll_envs):  # closed on exit
@@ -246,7 +251,7 @@ def main(argv=None) -> dict:
     state["final_eval"] = final
     student_handle.save(run.dir / "policy.pt", dt_cfg, encoder_file=enc_file,
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
-                               "state_noise": cfg.state_noise, "expert_coef": expert_coef,
+                               "estimate_noise": cfg.estimate_noise, "expert_coef": expert_coef,
                                "proprio_dims": list(proprio_dims), "picker_odometry": odometry,
                                "select_episodes": select_episodes, **selection.summary()})
     state.finish()

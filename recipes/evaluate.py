@@ -2,9 +2,9 @@
 
     python recipes/evaluate.py --policy expert --task ClothFold
     python recipes/evaluate.py --policy runs/online_dt/<name>          # teacher (policy.pt inside)
-    python recipes/evaluate.py --policy runs/distill/<name> --state-noise 0 1e-5 1e-4 1e-3
+    python recipes/evaluate.py --policy runs/distill/<name> --noise-levels 0 1e-5 1e-4 1e-3
 
-Runs ``--trials`` episodes (default 100, the paper's count) per state-noise level and writes to
+Runs ``--trials`` episodes (default 100, the paper's count) per acting-noise level (``--noise-levels``) and writes to
 ``runs/evaluate/<name>/``: ``episodes.csv`` (one row per episode, with where each picker first closed
 and whether its corner was lifted: ``trakdis.evaluation.grasp_report``; for a student, the encoder's error
 per state group on the states it visited), ``summary.csv`` and
@@ -16,9 +16,10 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Annotated, ClassVar, Literal, Optional
 
 import pandas as pd
+import tyro
 
 from trakdis.envs import close_env, task_spec
 from trakdis.envs.specs import TaskName
@@ -38,13 +39,15 @@ class EvaluateConfig(RunConfig):
     task: Optional[TaskName] = None
     """task (required for the expert; a policy file knows its own)"""
     trials: int = 100
-    """episodes per state-noise level"""
+    """episodes per noise level (--noise-levels)"""
     split: Literal["train", "eval"] = "eval"
     """configuration pool of the episodes"""
     horizon: Optional[int] = None
     """episode length (default: the policy's, 100)"""
-    state_noise: tuple[float, ...] = (0.0,)
-    """Gaussian noise std added to the (estimated) state; several values -> one row each"""
+    # --state-noise: its earlier name, still read
+    noise_levels: Annotated[tuple[float, ...], tyro.conf.arg(aliases=("--state-noise",))] = (0.0,)
+    """acting noise: Gaussian noise std added to the (estimated) state the policy reads; several values -> one row
+    each (the ``state_noise`` column of the tables)"""
     expert_noise: float = 0.0
     """action noise of the scripted expert"""
     target_return: Optional[float] = None
@@ -62,15 +65,16 @@ class EvaluateConfig(RunConfig):
     max_params: int = MAX_PARAMS
     """refuse a policy file whose models have more parameters than this (trakdis.utils.limits; raise it for a
     larger policy you trust)"""
+    SAVED_AS: ClassVar[dict] = {"state_noise": "noise_levels"}  # the option's earlier name (--state-noise)
 
     def __post_init__(self):
         # checked while the command line is parsed, before the run directory exists
-        if not self.state_noise:
-            raise ValueError("--state-noise needs at least one noise level")
-        bad = [s for s in self.state_noise if not (math.isfinite(s) and s >= 0)]
+        if not self.noise_levels:
+            raise ValueError("--noise-levels needs at least one noise level")
+        bad = [s for s in self.noise_levels if not (math.isfinite(s) and s >= 0)]
         if bad:
-            raise ValueError(f"--state-noise {bad[0]!r}: every noise level must be a finite std >= 0 "
-                             f"(got {list(self.state_noise)})")
+            raise ValueError(f"--noise-levels {bad[0]!r}: every noise level must be a finite std >= 0 "
+                             f"(got {list(self.noise_levels)})")
         if self.horizon is not None and self.horizon < 1:
             raise ValueError(f"--horizon {self.horizon}: the episode length must be >= 1 (none: the policy's own)")
         check_options(self, sizes=("trials", "num_envs", "video_size", "max_params"), counts=("videos",),
@@ -89,9 +93,9 @@ def main(argv=None) -> pd.DataFrame:
     spec = task_spec(handle.task, horizon=handle.horizon)
     name = handle.kind if handle.kind == "expert" else f"{handle.kind} ({handle.source})"
     run.print(f"evaluating {name} on {handle.task} ({cfg.split} split), {cfg.trials} trials x "
-              f"state noise {list(cfg.state_noise)}")
+              f"noise levels {list(cfg.noise_levels)}")
     rows, summaries = [], []
-    for i, sigma in enumerate(cfg.state_noise):
+    for i, sigma in enumerate(cfg.noise_levels):
         env = handle.make_env(num_envs=num_envs, split=cfg.split, state_noise=sigma, noise_seed=cfg.seed + 7919,
                               parallel=cfg.parallel, target_return=cfg.target_return)
         grasps, errors = [], []  # where each episode's pickers first closed (trakdis.evaluation.grasps)
@@ -127,7 +131,7 @@ def main(argv=None) -> pd.DataFrame:
     frame = write_summary_table(summaries, run.dir / "summary.csv", run.dir / "summary.md",
                                 columns=("task", "policy", "state_noise", "n", "mean", "std", "p25", "p50", "p75"))
     if cfg.videos > 0:
-        env = handle.make_env(num_envs=1, split=cfg.split, state_noise=cfg.state_noise[0],
+        env = handle.make_env(num_envs=1, split=cfg.split, state_noise=cfg.noise_levels[0],
                               target_return=cfg.target_return, video_size=cfg.video_size)
         try:
             res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.videos, max_steps=handle.horizon,

@@ -15,7 +15,9 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
+
+import tyro
 
 from trakdis.data import DataConfig, expert_targets, offline_state_buffer
 from trakdis.envs import task_spec
@@ -52,7 +54,9 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     lambda_entropy: float = 0.1  # entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature
     learn_temperature: bool = False  # learn the entropy temperature toward a target entropy of -action_dim (Online DT)
     state_scale_floor: float = 1e-3  # lower bound (metres) of the state normaliser's per-dimension scale
-    state_noise: float = 0.0  # std (metres) of Gaussian noise on the training windows' states (acting: exact)
+    # --state-noise: its earlier name, still read (the teacher options that earlier runs saved hold it)
+    train_state_noise: Annotated[float, tyro.conf.arg(aliases=("--state-noise",))] = 0.0
+    """std (m) of Gaussian noise on the training windows' true states (acting: exact)"""
     mask_unseen_pickers: bool = False  # train and act with a picker out of the 32x32 camera view as a fixed sentinel
     rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)
     buffer_capacity: int | None = None  # trajectories in the replay buffer (default: the dataset's; DAgger: +rollouts)
@@ -70,6 +74,7 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     """what the DT learns on its rollouts: the actions it executed (Online DT), or the scripted expert's
     action at each state it reached (DAgger; its context still reads the executed ones)"""
     SAVED_WITHOUT: ClassVar[dict] = {"online_labels": "executed"}  # a run saved before the option resumes as it ran
+    SAVED_AS: ClassVar[dict] = {"state_noise": "train_state_noise"}  # the option's earlier name (--state-noise)
     select_episodes: int = 0
     """early stopping: train-split episodes that the offline teacher and the teacher every --select-every rounds
     (and after the last) play; the one kept beats the earlier ones by --select-margin standard errors (0: the last)"""
@@ -92,7 +97,7 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
                       counts=("offline_updates", "online_rounds", "episodes_per_round", "updates_per_round",
                               "select_episodes"),
                       positive=("rtg_scale", "state_scale_floor", "online_lr"),
-                      nonnegative=("lambda_entropy", "state_noise", "select_margin"))
+                      nonnegative=("lambda_entropy", "train_state_noise", "select_margin"))
         check_option("min_lr_fraction", self.min_lr_fraction, gt=0, le=1)
         check_option("horizon", self.horizon, le=MAX_HORIZON, integer=True)
         super().__post_init__()
@@ -133,11 +138,11 @@ def main(argv=None) -> dict:
     phases = state.phases
     record = lambda name: lambda s: state.update({f"{name}_eval": float(s.mean()), f"{name}_scores": s.tolist()})  # noqa: E731
     # 1. the expert data in the replay buffer. The DT reads standardised states (buffer windows and acting; noisy
-    # ones with --state-noise; out-of-view pickers masked with --mask-unseen-pickers); the data stay raw.
+    # ones with --train-state-noise; out-of-view pickers masked with --mask-unseen-pickers); the data stay raw.
     buffer, normalizer = offline_state_buffer(
         state, cfg.data, phases=phases, task=cfg.task, horizon=cfg.horizon, seed=cfg.seed,
         context_len=cfg.model.context_len, rtg_scale=cfg.rtg_scale, min_scale=cfg.state_scale_floor,
-        state_noise=cfg.state_noise, fill=OutOfViewFill.for_task(cfg.task) if cfg.mask_unseen_pickers else None,
+        state_noise=cfg.train_state_noise, fill=OutOfViewFill.for_task(cfg.task) if cfg.mask_unseen_pickers else None,
         early_windows=cfg.early_windows, replacement=cfg.buffer_replacement, collect_pixels=cfg.collect_pixels,
         log=run.print, progress=cfg.progress, target_key=target,
         extra_capacity=cfg.online_rounds * cfg.episodes_per_round if target else 0)  # DAgger keeps every rollout

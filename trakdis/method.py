@@ -23,7 +23,7 @@ from trakdis.evaluation import pick_candidate, read_final_scores
 from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.stages import Stages
 
-TEACHER_ARGS = "--state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
+TEACHER_ARGS = "--train-state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
 """recipes/online_dt.py: the offline teacher trained on states with 1 cm of Gaussian noise, so that its
 weights act on an encoder's estimates (docs/recipes/distill.md)"""
 MAIN_JOB_RESETS = "--data.episodes 40 --model.log-std-min -2.5 --online-labels executed"

@@ -156,7 +156,7 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         assert "change at 0.001 (paired)" in md
         assert "## Robustness" in md and "| ClothFold | TraKDis+noise |" in md
         noisy = json.loads((workdir / "runs" / "distill" / "t1-ClothFold-s0-trakdis_noise" / "config.json").read_text())
-        assert noisy["state_noise"] == 0.001
+        assert noisy["estimate_noise"] == 0.001
         timings = pd.read_csv(out / "timings.csv")
         # teacher, 2 encoders, 5 distills (+1 with noise), 2 baselines, 9 evaluations (+2 over the noise levels)
         assert len(timings) == 22
@@ -223,7 +223,7 @@ def test_help(recipe, flags, capsys):
 def test_table1_stages_and_their_options():
     """Which stages one task and seed runs, with which options (recorded, nothing run): every evaluation
     and every student's curve on 2 workers by default, the baselines evaluated by evaluate.py only,
-    the robust student distilled with --train-noise and both students evaluated at every noise level (TraKDis's
+    the robust student distilled with --estimate-noise and both students evaluated at every noise level (TraKDis's
     noise-free level by its own evaluation when the trial counts agree)."""
     bench = load_benchmark()
     from trakdis.utils.config import parse_config
@@ -279,13 +279,13 @@ def test_table1_stages_and_their_options():
     assert calls["t-ClothFold-s3-encoder-noaug"][1][-1] == "--no-aug" and "--no-aug" not in calls["t-ClothFold-s3-encoder"][1]
     assert all(args[args.index("--teacher") + 1] == teacher for args in students.values())
     noisy = students["t-ClothFold-s3-trakdis_noise"]
-    assert noisy[noisy.index("--state-noise") + 1] == "0.001" and "--state-noise" not in students["t-ClothFold-s3-trakdis"]
+    assert noisy[noisy.index("--estimate-noise") + 1] == "0.001" and "--estimate-noise" not in students["t-ClothFold-s3-trakdis"]
     for name in ("t-ClothFold-s3-bc_image", "t-ClothFold-s3-dt_image"):
         args = calls[name][1]
         assert args[args.index("--eval-episodes") + 1] == "0", name
     for student in ("trakdis", "trakdis_noise"):  # 7 trials, not the method's 100: both play every level
         robust_eval = calls[f"t-ClothFold-s3-noise-{student}"][1]
-        assert robust_eval[robust_eval.index("--state-noise") + 1:] == ["0.0", "0.001"]
+        assert robust_eval[robust_eval.index("--noise-levels") + 1:] == ["0.0", "0.001"]
         assert robust_eval[robust_eval.index("--trials") + 1] == "7"
         assert robust[student] == (Path("runs") / "evaluate" / f"t-ClothFold-s3-noise-{student}",)
     # as many trials as the method's evaluation: TraKDis's noise-free level is that evaluation
@@ -300,9 +300,9 @@ def test_table1_stages_and_their_options():
         assert ("t-ClothFold-s3-noise-trakdis" in stages.calls) == bool(ladder)
         if ladder:
             args = stages.calls["t-ClothFold-s3-noise-trakdis"][1]
-            assert args[args.index("--state-noise") + 1:] == ladder
+            assert args[args.index("--noise-levels") + 1:] == ladder
         args = stages.calls["t-ClothFold-s3-noise-trakdis_noise"][1]
-        assert args[args.index("--state-noise") + 1:] == [str(float(x)) for x in levels]
+        assert args[args.index("--noise-levels") + 1:] == [str(float(x)) for x in levels]
     stages = Recorder()
     bench.run_task_seed(stages, parse_config(bench.Table1Config, ["--no-parallel", "--no-overlap", "--noise-levels",
                                                                   "--methods", *methods]), "t", "ClothFold", 0)
@@ -351,7 +351,7 @@ def test_table1_help_and_quick_preset(capsys):
     assert "--select-episodes 0" in cfg.student_args  # every arm keeps its last round: no 10-episode selection
     cfg = parse_config(bench.Table1Config, ["--preset", "quick", "--noise-levels", "0", "1e-3"], presets=bench.PRESETS)
     assert cfg.noise_levels == (0.0, 1e-3)
-    for bad in (["--noise-levels", "1e-3", "1e-2"], ["--noise-levels", "0", "-1"], ["--train-noise", "nan"]):
+    for bad in (["--noise-levels", "1e-3", "1e-2"], ["--noise-levels", "0", "-1"], ["--estimate-noise", "nan"]):
         with pytest.raises((ValueError, SystemExit), match="noise|"):
             parse_config(bench.Table1Config, bad, presets=bench.PRESETS)
     with pytest.raises(SystemExit) as exc:

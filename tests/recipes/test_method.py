@@ -20,7 +20,7 @@ def test_stage_args_parse_in_their_recipes_with_the_methods_defaults():
     and the copy's selection, the student reading that encoder; a caller's options come last and win."""
     teacher = parse_config(load_recipe("online_dt").OnlineDTConfig, teacher_stage_args("ClothFoldDiagonalPinned"))
     assert (teacher.task, teacher.collect_pixels, teacher.eval_episodes) == ("ClothFoldDiagonalPinned", True, 0)
-    assert (teacher.state_noise, teacher.state_scale_floor, teacher.online_rounds) == (0.01, 0.02, 0)
+    assert (teacher.train_state_noise, teacher.state_scale_floor, teacher.online_rounds) == (0.01, 0.02, 0)
     # not the main job's (online_dt.py's defaults): the encoder's 40 demonstrations, DTModelConfig's log-std floor
     assert (teacher.data.episodes, teacher.model.log_std_min, teacher.online_labels) == (40, -2.5, "executed")
     online_dt = load_recipe("online_dt")

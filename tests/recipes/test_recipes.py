@@ -142,7 +142,7 @@ def test_online_dt_offline_control(workdir, dataset):
     rollouts' labels (DAgger's, the default, or the executed ones) are never read: the same run with either. With
     --select-episodes (early stopping) the offline teacher and round 1 play the same train-split episodes and
     the kept one is the final teacher: its weights in policy.pt, its scores the final ones."""
-    args = ("--offline-control", "--online-rounds", 1, "--expert-episodes", 0, "--online-lr", 1e-4, "--state-noise", 0.01,
+    args = ("--offline-control", "--online-rounds", 1, "--expert-episodes", 0, "--online-lr", 1e-4, "--train-state-noise", 0.01,
             "--select-episodes", 2, "--select-every", 1)
     run_recipe(workdir, "online_dt", *online_dt_args("control", *args))
     run_recipe(workdir, "online_dt", *online_dt_args("control-executed", *args, "--online-labels", "executed"))
@@ -163,7 +163,7 @@ def test_online_dt_offline_control(workdir, dataset):
     assert frame["online/normalized_performance"].notna().sum() == 1
     online_lr = frame.loc[frame["step"] > 6, "train/lr"].dropna()  # after the 6 offline updates
     assert len(online_lr) and (online_lr == 1e-4).all()
-    assert json.loads((run_dir / "config.json").read_text())["state_noise"] == 0.01
+    assert json.loads((run_dir / "config.json").read_text())["train_state_noise"] == 0.01
 
 
 def test_online_dt_sigkill_then_resume_matches_uninterrupted(workdir, dataset, teacher):
@@ -320,13 +320,13 @@ def test_distill_kept_middle_round_is_evaluated(workdir, teacher, encoder, monke
 
 def test_distill_ablations(workdir, teacher, encoder):
     out = run_recipe(workdir, "distill", *distill_args("ablation", "--no-weight-copy", "--no-distill",
-                                                        "--state-noise", "1e-3", "--no-eval-teacher",
+                                                        "--estimate-noise", "1e-3", "--no-eval-teacher",
                                                         "--proprio-pickers"))
     assert "expert imitation" in out.stdout and "weight copy False" in out.stdout
     frame = read_log(workdir / "runs" / "distill" / "ablation")
     assert frame["train/loss_nll"].notna().sum() == 2 and "train/loss_distill" not in frame.columns
     ck = read_checkpoint(workdir / "runs" / "distill" / "ablation" / "policy.pt")
-    assert ck["distill"] is False and ck["weight_copy"] is False and ck["state_noise"] == 1e-3
+    assert ck["distill"] is False and ck["weight_copy"] is False and ck["estimate_noise"] == 1e-3
     assert ck["proprio_dims"] == list(range(12, 18))  # ClothFold: two pickers after the 4 corners
     assert load_policy(workdir / "runs" / "distill" / "ablation").proprio_dims == tuple(range(12, 18))
     assert ck["picker_odometry"] is False  # off with --proprio-pickers: proprioception gives the pickers
@@ -393,7 +393,7 @@ def test_distill_dagger_mixture_and_expert_data(workdir, teacher, encoder):
 
 def test_evaluate_student_and_expert(workdir, student):
     run_recipe(workdir, "evaluate", "--name", "ev", "--policy", "runs/distill/student", "--trials", 3,
-               "--state-noise", 0, 1e-3, "--videos", 1, "--video-size", 64, "--threads", 1)
+               "--noise-levels", 0, 1e-3, "--videos", 1, "--video-size", 64, "--threads", 1)
     run_dir = workdir / "runs" / "evaluate" / "ev"
     summary = pd.read_csv(run_dir / "summary.csv")
     assert summary["state_noise"].tolist() == [0.0, 1e-3] and (summary["n"] == 3).all()
@@ -426,8 +426,8 @@ def test_evaluate_student_and_expert(workdir, student):
     ("online_dt", ["--preset", "--model.embed-dim", "--offline-updates", "--exploration-rtg", "--resume",
                    "--mask-unseen-pickers"]),
     ("train_encoder", ["--no-aug", "--val-fraction", "--mask-unseen-pickers"]),
-    ("distill", ["--no-weight-copy", "--no-distill", "--state-noise"]),
-    ("evaluate", ["--trials", "--state-noise", "--videos"]),
+    ("distill", ["--no-weight-copy", "--no-distill", "--estimate-noise"]),
+    ("evaluate", ["--trials", "--noise-levels", "--videos"]),
 ])
 def test_help(recipe, flags, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -509,8 +509,8 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
 
 
 @pytest.mark.parametrize("recipe,args,message", [
-    ("evaluate", ["--task", "ClothFold", "--state-noise", "-1"], r"--state-noise -1\.0: every noise level must be a finite std >= 0"),
-    ("evaluate", ["--task", "ClothFold", "--state-noise", "0", "nan"], r"--state-noise nan"),
+    ("evaluate", ["--task", "ClothFold", "--noise-levels", "-1"], r"--noise-levels -1\.0: every noise level must be a finite std >= 0"),
+    ("evaluate", ["--task", "ClothFold", "--noise-levels", "0", "nan"], r"--noise-levels nan"),
     ("evaluate", ["--task", "ClothFold", "--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),
@@ -524,7 +524,7 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("train_encoder", ["--select-episodes", "3", "--members", "2"], r"and --teacher"),
 ])
 def test_bad_options_are_refused_before_anything_is_written(tmp_path, monkeypatch, capsys, recipe, args, message):
-    # --state-noise -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
+    # --noise-levels -1 / nan were skipped yet reported in the table; evaluate's --horizon 0 was ignored
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exc:
         load_recipe(recipe).main(["--name", "bad", *args])

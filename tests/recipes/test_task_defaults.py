@@ -1,6 +1,7 @@
 """The method's per-task rules live in one table (trakdis.envs.task_defaults): every task has an entry, and
 every recipe's default resolves to the table's value (a given option still wins)."""
 import dataclasses
+import json
 
 import pytest
 
@@ -55,3 +56,40 @@ def test_each_recipe_resolves_the_tables_default(task):
     assert teacher_candidates(task) == defaults.teacher_candidates and teacher_candidates(task, 2) == 2
     assert data_args(task) == ([] if defaults.close_radius is None
                                else ["--data.close-radius", str(defaults.close_radius)])
+
+
+@pytest.mark.parametrize("recipe,cls,old,new,value", [
+    ("online_dt", "OnlineDTConfig", "state_noise", "train_state_noise", 0.01),
+    ("distill", "DistillConfig", "state_noise", "estimate_noise", 1e-3),
+    ("evaluate", "EvaluateConfig", "state_noise", "noise_levels", [0.0, 1e-3]),
+])
+def test_a_config_saved_with_the_old_noise_option_still_loads(tmp_path, recipe, cls, old, new, value):
+    """--state-noise had three meanings (online_dt: on the true state while training; distill: on the estimate
+    while training; evaluate: the acting noise levels); each has its own name now, and an earlier run's
+    config.json (SAVED_AS) resumes with its value under the new one."""
+    from trakdis.utils.config import config_to_dict, load_config, save_config
+
+    config = getattr(load_recipe(recipe), cls)
+    saved = config_to_dict(config())
+    saved[old] = saved.pop(new)
+    saved[old] = value
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    loaded = load_config(config, tmp_path / "config.json")
+    assert getattr(loaded, new) == (tuple(value) if isinstance(value, list) else value)
+    assert load_config(config, save_config(loaded, tmp_path / "again.json")) == loaded
+    # the old flag, in the option strings earlier runs saved (pipeline.py's --teacher-args), means what it meant
+    flag = "--" + new.replace("_", "-")
+    values = [str(v) for v in (value if isinstance(value, list) else [value])]
+    assert parse_config(config, ["--state-noise", *values]) == parse_config(config, [flag, *values])
+    assert getattr(parse_config(config, [flag, *values]), new) == getattr(loaded, new)
+
+
+def test_table1_loads_the_old_train_noise():
+    from trakdis.utils.config import config_from_dict, config_to_dict
+
+    from .test_baselines import load_benchmark
+
+    config = load_benchmark().Table1Config
+    saved = config_to_dict(config())
+    saved.pop("estimate_noise")
+    assert config_from_dict(config, {**saved, "train_noise": 0.002}).estimate_noise == 0.002

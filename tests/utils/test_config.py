@@ -136,3 +136,18 @@ def test_json_errors_name_the_field(tmp_path):
         load_config(Cfg, tmp_path / "config.json")
     with pytest.raises(FileNotFoundError, match="missing.json"):
         load_config(Cfg, tmp_path / "missing.json")
+
+
+@dataclass
+class Renamed:
+    estimate_noise: float = 0.0
+    steps: int = 10
+    SAVED_AS = {"state_noise": "estimate_noise"}  # not a field (no annotation): the earlier name of one
+
+
+def test_a_renamed_field_loads_from_its_earlier_name(tmp_path):
+    (tmp_path / "config.json").write_text(json.dumps({"state_noise": 0.01, "steps": 3}))
+    assert load_config(Renamed, tmp_path / "config.json") == Renamed(estimate_noise=0.01, steps=3)
+    assert config_from_dict(Renamed, {"estimate_noise": 0.02}) == Renamed(estimate_noise=0.02)
+    with pytest.raises(ValueError, match="state_noise.*estimate_noise"):
+        config_from_dict(Renamed, {"state_noise": 0.01, "estimate_noise": 0.02})

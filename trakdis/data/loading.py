@@ -376,7 +376,7 @@ def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: flo
     ``"state_estimate"`` in state units, standardised when sampled by ``normalizer`` (the teacher's,
     of ``"state"`` and ``"state_estimate"``). With ``distill`` the windows also hold the true
     ``"state"``, which the frozen teacher reads to label them; ``proprio_dims`` (``--proprio-pickers``):
-    the true state's values replace the estimate's there. ``state_noise`` > 0 (``--state-noise``, the
+    the true state's values replace the estimate's there. ``state_noise`` > 0 (distill.py ``--estimate-noise``, the
     paper's robust student): Gaussian noise of that std on every sampled window's estimate, fresh at
     each sample, before the override and the standardisation, whatever the data (the encoded expert
     episodes or rollouts); the teacher's labels read the true state, without noise."""

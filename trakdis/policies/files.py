@@ -55,8 +55,9 @@ POLICY_KEYS = frozenset({
     "format", "kind", "task", "horizon", "dt_config", "observation_key", "actor", "target_return", "rtg_scale",
     "env_kwargs", "encoder", "normalizer", "render_version", "bc_config", "trunk_config", "trunk",
     "proprio_dims", "picker_odometry", "selected_round", "selection_scores", "teacher", "weight_copy", "distill",
-    "state_noise", "expert_coef", "select_episodes", "dataset", "epochs", "updates"})
-"""Entries a policy file may hold (``save_policy`` / ``save_image_policy`` and the recipes' extras)."""
+    "estimate_noise", "state_noise", "expert_coef", "select_episodes", "dataset", "epochs", "updates"})
+"""Entries a policy file may hold (``save_policy`` / ``save_image_policy`` and the recipes' extras; ``state_noise``:
+``estimate_noise`` in the files distill.py wrote before the option was renamed)."""
 ENCODER_KEYS = frozenset({
     "format", "kind", "task", "render_version", "encoder_kwargs", "state_dict", "ensemble", "val_mae", "val_error_cm",
     "epoch", "aug", "dataset", "student_rounds", "member_scores", "selected_member", "mask_unseen_pickers",

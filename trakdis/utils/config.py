@@ -84,8 +84,15 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
 def config_from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
     """Rebuild dataclass ``cls`` from :func:`config_to_dict` output (missing keys keep their
     defaults, or take ``cls.SAVED_WITHOUT``'s value: what a configuration saved before the field
-    existed ran with, where today's default differs); an unknown key or a value of the wrong type
-    raises an error naming the field."""
+    existed ran with, where today's default differs); a key named in ``cls.SAVED_AS`` (``{old field
+    name: new field name}``, a field renamed since) is read as the new field; an unknown key or a value
+    of the wrong type raises an error naming the field."""
+    data = dict(data)
+    for old, new in getattr(cls, "SAVED_AS", {}).items():
+        if old in data:
+            if new in data:
+                raise ValueError(f"config of {cls.__name__}: both {old!r} and its new name {new!r}")
+            data[new] = data.pop(old)
     data = {**getattr(cls, "SAVED_WITHOUT", {}), **data}
     return dacite.from_dict(cls, data, config=dacite.Config(cast=[tuple], strict=True))
 
