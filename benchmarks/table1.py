@@ -143,6 +143,9 @@ class Table1Config(RunConfig):
     """std of the noise on the estimated state the robust student is distilled with (distill.py --estimate-noise;
     metres; the paper's 1e-3)"""
     SAVED_AS: ClassVar[dict] = {"train_noise": "estimate_noise"}  # the option's earlier name (--train-noise)
+    # options saved by earlier runs name flags renamed since: read as the new ones on --resume
+    SAVED_FLAGS: ClassVar[dict] = {"teacher_args": {"--state-noise": "--train-state-noise"},
+                                   "student_args": {"--state-noise": "--estimate-noise"}}
     noise_trials: int = 0
     """evaluation episodes per noise level and student (0: --trials, and TraKDis's noise-free level is then
     its --trials evaluation)"""

@@ -13,9 +13,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from dataclasses import dataclass, field
-from typing import Annotated, ClassVar, Literal, Optional
-
-import tyro
+from typing import ClassVar, Literal, Optional
 
 from trakdis.data import DataConfig, load_encoded_dataset, student_buffer
 from trakdis.envs import task_defaults, task_spec
@@ -39,8 +37,7 @@ class DistillConfig(EvalConfig, OptimConfig, RunConfig):
     """initialise the student with the teacher's weights (--no-weight-copy: fresh weights, never kept by the
     selection; No-Pretrain, with --no-distill the paper's No-Distill)"""
     distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
-    # --state-noise: its earlier name, still read (the student options that earlier runs saved may hold it)
-    estimate_noise: Annotated[float, tyro.conf.arg(aliases=("--state-noise",))] = 0.0
+    estimate_noise: float = 0.0
     """std of Gaussian noise on the estimated state of every training window (robustness)"""
     SAVED_AS: ClassVar[dict] = {"state_noise": "estimate_noise"}  # the option's earlier name (--state-noise)
     proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder

@@ -16,10 +16,9 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass
-from typing import Annotated, ClassVar, Literal, Optional
+from typing import ClassVar, Literal, Optional
 
 import pandas as pd
-import tyro
 
 from trakdis.envs import close_env, task_spec
 from trakdis.envs.specs import TaskName
@@ -44,8 +43,7 @@ class EvaluateConfig(RunConfig):
     """configuration pool of the episodes"""
     horizon: Optional[int] = None
     """episode length (default: the policy's, 100)"""
-    # --state-noise: its earlier name, still read
-    noise_levels: Annotated[tuple[float, ...], tyro.conf.arg(aliases=("--state-noise",))] = (0.0,)
+    noise_levels: tuple[float, ...] = (0.0,)
     """acting noise: Gaussian noise std added to the (estimated) state the policy reads; several values -> one row
     each (the ``state_noise`` column of the tables)"""
     expert_noise: float = 0.0

@@ -15,9 +15,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Annotated, ClassVar, Literal
-
-import tyro
+from typing import ClassVar, Literal
 
 from trakdis.data import DataConfig, expert_targets, offline_state_buffer
 from trakdis.envs import task_spec
@@ -54,8 +52,7 @@ class OnlineDTConfig(EvalConfig, OptimConfig, RunConfig):
     lambda_entropy: float = 0.1  # entropy bonus weight (paper: 0.1); initial temperature with --learn-temperature
     learn_temperature: bool = False  # learn the entropy temperature toward a target entropy of -action_dim (Online DT)
     state_scale_floor: float = 1e-3  # lower bound (metres) of the state normaliser's per-dimension scale
-    # --state-noise: its earlier name, still read (the teacher options that earlier runs saved hold it)
-    train_state_noise: Annotated[float, tyro.conf.arg(aliases=("--state-noise",))] = 0.0
+    train_state_noise: float = 0.0
     """std (m) of Gaussian noise on the training windows' true states (acting: exact)"""
     mask_unseen_pickers: bool = False  # train and act with a picker out of the 32x32 camera view as a fixed sentinel
     rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)

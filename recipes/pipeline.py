@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from typing import ClassVar
 from pathlib import Path
 
 import pandas as pd
@@ -78,6 +79,9 @@ class PipelineConfig(RunConfig):
     trakdis.method)"""
     student_args: str = STUDENT_ARGS
     """extra options for recipes/distill.py"""
+    # options saved by earlier runs name flags renamed since: read as the new ones on --resume
+    SAVED_FLAGS: ClassVar[dict] = {"teacher_args": {"--state-noise": "--train-state-noise"},
+                                   "student_args": {"--state-noise": "--estimate-noise"}}
     mask_unseen_pickers: bool = False
     """pass --mask-unseen-pickers to the teacher and encoder stages (pickers out of the camera view masked)"""
     background_evaluations: bool = True

@@ -151,3 +151,15 @@ def test_a_renamed_field_loads_from_its_earlier_name(tmp_path):
     assert config_from_dict(Renamed, {"estimate_noise": 0.02}) == Renamed(estimate_noise=0.02)
     with pytest.raises(ValueError, match="state_noise.*estimate_noise"):
         config_from_dict(Renamed, {"state_noise": 0.01, "estimate_noise": 0.02})
+
+
+@dataclass
+class PassesFlags:
+    stage_args: str = ""
+    SAVED_FLAGS = {"stage_args": {"--old-flag": "--new-flag"}}
+
+
+def test_renamed_flags_in_saved_stage_options_are_read_as_the_new_ones():
+    loaded = config_from_dict(PassesFlags, {"stage_args": "--old-flag 1 --old-flag=2 --old-flagged 3 x--old-flag"})
+    assert loaded.stage_args == "--new-flag 1 --new-flag=2 --old-flagged 3 x--old-flag"
+    assert config_from_dict(PassesFlags, {}) == PassesFlags()

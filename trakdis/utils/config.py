@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence, TypeVar
@@ -85,14 +86,20 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
     """Rebuild dataclass ``cls`` from :func:`config_to_dict` output (missing keys keep their
     defaults, or take ``cls.SAVED_WITHOUT``'s value: what a configuration saved before the field
     existed ran with, where today's default differs); a key named in ``cls.SAVED_AS`` (``{old field
-    name: new field name}``, a field renamed since) is read as the new field; an unknown key or a value
-    of the wrong type raises an error naming the field."""
+    name: new field name}``, a field renamed since) is read as the new field; in a string field named in
+    ``cls.SAVED_FLAGS`` (``{field: {old flag: new flag}}``: options passed on to another recipe, whose
+    flag was renamed since) each old flag is read as the new one; an unknown key or a value of the wrong
+    type raises an error naming the field."""
     data = dict(data)
     for old, new in getattr(cls, "SAVED_AS", {}).items():
         if old in data:
             if new in data:
                 raise ValueError(f"config of {cls.__name__}: both {old!r} and its new name {new!r}")
             data[new] = data.pop(old)
+    for key, flags in getattr(cls, "SAVED_FLAGS", {}).items():
+        if isinstance(data.get(key), str):
+            for old, new in flags.items():
+                data[key] = re.sub(rf"(?<!\S){re.escape(old)}(?=[\s=]|$)", new, data[key])
     data = {**getattr(cls, "SAVED_WITHOUT", {}), **data}
     return dacite.from_dict(cls, data, config=dacite.Config(cast=[tuple], strict=True))
 
