@@ -110,3 +110,11 @@ def test_readme_snippet_runs(index, tmp_path, monkeypatch):
 
 def test_readme_has_snippets():
     assert len(readme_snippets()) >= 3  # the encoder in an env, the losses, the swapping buffer
+
+
+def test_version_is_pyprojects_and_has_a_changelog_entry():
+    import trakdis
+
+    version = re.search(r'^version = "([^"]+)"', (ROOT / "pyproject.toml").read_text(), re.M).group(1)
+    assert trakdis.__version__ == version  # installed from this tree (pip install -e .)
+    assert f"## [{version}]" in (ROOT / "CHANGELOG.md").read_text()

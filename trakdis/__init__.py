@@ -8,6 +8,7 @@ of a teacher and an encoder: its weight copy, rollouts and races), ``method`` (t
 their default options).
 """
 
+import importlib.metadata as _metadata
 import os as _os
 
 # MuJoCo fixes its GL backend when it is first imported, and ``import torchrl.envs`` imports it.
@@ -17,4 +18,7 @@ _os.environ.setdefault("MUJOCO_GL", "egl")
 if _os.environ["MUJOCO_GL"] in ("egl", "osmesa"):
     _os.environ.setdefault("PYOPENGL_PLATFORM", _os.environ["MUJOCO_GL"])
 
-__version__ = "0.1.0"
+try:  # one source of the version: pyproject.toml, through the installed package's metadata
+    __version__ = _metadata.version("trakdis")
+except _metadata.PackageNotFoundError:  # a source tree that was not installed
+    __version__ = "0+unknown"
