@@ -243,3 +243,18 @@ def test_run_state_finish_saves_draws_and_reports_the_phases(tmp_path, capsys):
     assert report["num_envs"] == 2 and "files and curves" in report["phases"]
     assert torch.load(run.checkpoint_path, weights_only=False)["counters"]["updates"] == 3
     assert "episodes simulated: 0" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_a_gpu_run_resumes_on_a_cpu_only_machine_and_a_new_one_is_refused_before_its_directory(tmp_path):
+    root = str(tmp_path)
+    run, _ = train(["--root", root, "--name", "g", "--stop-after", "2", "--no-progress"])
+    saved = json.loads((run.dir / "config.json").read_text())
+    (run.dir / "config.json").write_text(json.dumps({**saved, "device": "cuda"}))  # as a GPU machine saved it
+    with pytest.raises(ValueError, match="--device cuda: this machine has no CUDA device"):
+        train(["--root", root, "--resume", "--name", "g"])  # resuming on its saved device
+    resumed, step = train(["--root", root, "--resume", "--name", "g", "--device", "cpu"])
+    assert step == 6 and resumed.cfg.device == "cpu"
+    with pytest.raises(ValueError, match="--device cuda: this machine has no CUDA device"):
+        train(["--root", root, "--name", "new", "--device", "cuda"])
+    assert not (run.dir.parent / "new").exists() and run.dir.exists()

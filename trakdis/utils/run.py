@@ -121,18 +121,23 @@ class RunConfig:
         check_option("threads", self.threads, ge=0, integer=True)
         if self.stop_after is not None:
             check_option("stop_after", self.stop_after, ge=0, integer=True)
-        check_device(self.device)
+        # a torch device at all; whether this machine has it is checked by Run.start, after a resumed run's
+        # saved configuration met the typed flags (a run started on a GPU may go on with --device cpu)
+        check_device(self.device, on_this_machine=False)
         parent = getattr(super(), "__post_init__", None)
         if parent is not None:
             parent()
 
 
-def check_device(device: str, name: str = "--device") -> None:
-    """A ``ValueError`` naming ``name`` unless ``device`` is a torch device this machine has."""
+def check_device(device: str, name: str = "--device", *, on_this_machine: bool = True) -> None:
+    """A ``ValueError`` naming ``name`` unless ``device`` is a torch device (that this machine has, with
+    ``on_this_machine``)."""
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError, ValueError) as err:
         raise ValueError(f"{name} {device!r} is not a torch device (cpu, cuda, cuda:1, mps, ...): {err}") from None
+    if not on_this_machine:
+        return
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"{name} {device}: this machine has no CUDA device")
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
@@ -174,6 +179,8 @@ class Run:
     ) -> "Run":
         cfg = parse_config(cfg_cls, argv, presets=presets, description=description)
         check_logger_backend(cfg.logger)  # before anything is written
+        if not cfg.resume:
+            check_device(cfg.device)
         resuming = cfg.resume
         directory = make_run_dir(recipe, name=cfg.name, root=cfg.root, resume=resuming)
         saved = directory / "config.json"
@@ -187,6 +194,7 @@ class Run:
             own = dataclasses.replace(load_config(cfg_cls, saved), stop_after=None)
             cfg = parse_config(cfg_cls, argv, presets=presets, description=description, default=own)
             check_logger_backend(cfg.logger)
+            check_device(cfg.device)
         _hold_run_dir(directory)  # before anything of the run is written
         for stale in remove_stale_temporaries(directory):  # of an earlier process of this run, killed mid-write
             print(f"removed {stale}, a temporary file of an interrupted write", file=sys.stderr)
