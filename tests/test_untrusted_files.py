@@ -303,12 +303,17 @@ def test_random_bytes_and_a_fifo_as_checkpoints(tmp_path):
 # --------------------------------------------------------------------------- workers and options
 def test_workers_are_capped_by_the_work_and_the_cores(monkeypatch):
     """Failure 5: --num-envs 1000 started 1000 environments for 1 or 2 episodes."""
-    monkeypatch.setattr(limits, "available_cores", lambda: 4)
+    monkeypatch.setattr(limits, "available_cores", lambda: 16)
     with pytest.warns(UserWarning, match="--num-envs 1000: starting 2 \\(there are 2 episodes\\)"):
         assert limits.cap_workers(1000, 2) == 2
-    with pytest.warns(UserWarning, match="starting 4 \\(there are 4 CPU cores\\)"):
-        assert limits.cap_workers(1000, 50) == 4
+    with pytest.warns(UserWarning, match="starting 16 \\(there are 16 CPU cores\\)"):
+        assert limits.cap_workers(1000, 50) == 16
     assert limits.cap_workers(3, 50) == 3
+    # a request up to MIN_CORE_CAP is kept on a smaller machine: the same command plays the same episodes
+    monkeypatch.setattr(limits, "available_cores", lambda: 1)
+    assert limits.cap_workers(2, 50) == 2 and limits.cap_workers(limits.MIN_CORE_CAP, 50) == limits.MIN_CORE_CAP
+    with pytest.warns(UserWarning, match=f"starting {limits.MIN_CORE_CAP} "):
+        assert limits.cap_workers(1000, 50) == limits.MIN_CORE_CAP
     told = []
     assert limits.cap_workers(8, 1, warn=told.append) == 1 and told
 
@@ -321,9 +326,10 @@ def test_collection_and_evaluation_use_the_cap(tmp_path, monkeypatch):
     monkeypatch.setattr(loading, "collect_expert_dataset", lambda path, **kw: seen.update(kw))
     loading.ensure_dataset(loading.DataConfig(path=str(tmp_path / "ds"), episodes=2, num_envs=1000), task="ClothFold",
                            horizon=3, seed=0, pixels=False, log=lambda *a: None)
-    assert seen["num_workers"] == min(2, limits.available_cores())
+    assert seen["num_workers"] == 2
+    cap = max(limits.available_cores(), limits.MIN_CORE_CAP)
     with pytest.warns(UserWarning, match="--num-envs 1000"):
-        assert EvalConfig(num_envs=1000).num_envs == limits.available_cores()
+        assert EvalConfig(num_envs=1000).num_envs == cap
     assert not (tmp_path / "ds").exists()
 
 

@@ -34,7 +34,7 @@ import numpy as np
 
 __all__ = [
     "MAX_PARAMS", "MAX_ACTIVATION_BYTES", "MAX_LAYERS", "MAX_MEMBERS", "MAX_HORIZON", "MAX_JSON_BYTES",
-    "MAX_EXPANSION", "MAX_SEED", "ENV_KWARG_RANGES", "MAX_SIM_SUBSTEPS",
+    "MAX_EXPANSION", "MAX_SEED", "ENV_KWARG_RANGES", "MAX_SIM_SUBSTEPS", "MIN_CORE_CAP",
     "check_regular_file", "open_regular_file", "read_json", "check_zip_archive", "check_env_kwargs",
     "check_option", "check_options", "cap_workers", "available_cores", "is_int",
 ]
@@ -57,6 +57,8 @@ entries uncompressed, so its own files unpack to less than their size)"""
 MAX_SEED = 2**63
 """seeds are ints in ``[0, MAX_SEED)`` (``torch.manual_seed`` takes up to ``2**64 - 1``; the recipes add offsets)"""
 MAX_SIM_SUBSTEPS = 64
+MIN_CORE_CAP = 8
+"""environments or worker processes a machine with fewer cores still starts when asked (see :func:`cap_workers`)"""
 """physics steps per env step (``action_repeat * substeps``; the default env: 8) of a policy file's env options"""
 
 # env options a policy file may carry: name -> (type, low, high); None: unbounded on that side
@@ -255,13 +257,15 @@ def available_cores() -> int:
 
 def cap_workers(requested: int, work: int, *, what: str = "--num-envs", unit: str = "episodes",
                 warn: Callable[[str], None] | None = None) -> int:
-    """``min(requested, work, cores)``: environments (worker processes) to start for ``work`` episodes.
-    More would only hold memory (a MuJoCo env each) and processes with nothing to do; a lowered count
-    is said (``warn``, default: a ``UserWarning``)."""
+    """``min(requested, work, max(cores, MIN_CORE_CAP))``: environments (worker processes) to start for
+    ``work`` episodes. More would only hold memory (a MuJoCo env each) and processes with nothing to do; a
+    lowered count is said (``warn``, default: a ``UserWarning``). The number of envs decides which
+    configurations an evaluation plays, so a count up to :data:`MIN_CORE_CAP` (the defaults: 2) is never
+    lowered for the machine: the same command plays the same episodes on any machine."""
     requested, work = int(requested), int(work)
     if requested < 1:
         raise ValueError(f"{what} must be >= 1, got {requested}")
-    cores = available_cores()
+    cores = max(available_cores(), MIN_CORE_CAP)
     n = max(1, min(requested, max(work, 1), cores))
     if n < requested:
         why = f"{work} {unit}" if n == max(work, 1) else f"{cores} CPU cores"
