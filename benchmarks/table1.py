@@ -143,6 +143,14 @@ class Table1Config(RunConfig):
     """std of the noise on the estimated state the robust student is distilled with (distill.py --estimate-noise;
     metres; the paper's 1e-3)"""
     SAVED_AS: ClassVar[dict] = {"train_noise": "estimate_noise"}  # the option's earlier name (--train-noise)
+
+    @staticmethod
+    def upgrade_saved(data: dict) -> dict:
+        """A run saved before the paper's No-Distill existed (it has ``train_noise``) named the weight-copy arm
+        ``no_distill``: on --resume and --report it is that run's ``no_distill_copy``."""
+        if "train_noise" in data and "methods" in data:
+            data = {**data, "methods": [("no_distill_copy" if m == "no_distill" else m) for m in data["methods"]]}
+        return data
     # options saved by earlier runs name flags renamed since: read as the new ones on --resume
     SAVED_FLAGS: ClassVar[dict] = {"teacher_args": {"--state-noise": "--train-state-noise"},
                                    "student_args": {"--state-noise": "--estimate-noise"}}

@@ -111,3 +111,7 @@ def test_table1_loads_the_old_train_noise():
     saved = config_to_dict(config())
     saved.pop("estimate_noise")
     assert config_from_dict(config, {**saved, "train_noise": 0.002}).estimate_noise == 0.002
+    # such a run's "no_distill" was the weight-copy arm: it resumes and reports as no_distill_copy
+    old = {**saved, "train_noise": 0.001, "methods": ["expert", "teacher", "trakdis", "no_distill"]}
+    assert config_from_dict(config, old).methods == ("expert", "teacher", "trakdis", "no_distill_copy")
+    assert "no_distill" in config_from_dict(config, saved).methods  # a run saved since: the paper's arm

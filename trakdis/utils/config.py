@@ -88,9 +88,12 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
     existed ran with, where today's default differs); a key named in ``cls.SAVED_AS`` (``{old field
     name: new field name}``, a field renamed since) is read as the new field; in a string field named in
     ``cls.SAVED_FLAGS`` (``{field: {old flag: new flag}}``: options passed on to another recipe, whose
-    flag was renamed since) each old flag is read as the new one; an unknown key or a value of the wrong
-    type raises an error naming the field."""
+    flag was renamed since) each old flag is read as the new one; ``cls.upgrade_saved(data)``, where ``cls``
+    has it, rewrites what a field's meaning change needs; an unknown key or a value of the wrong type raises
+    an error naming the field."""
     data = dict(data)
+    if hasattr(cls, "upgrade_saved"):
+        data = dict(cls.upgrade_saved(data))
     for old, new in getattr(cls, "SAVED_AS", {}).items():
         if old in data:
             if new in data:
