@@ -21,12 +21,11 @@ from torch import nn
 
 from trakdis.envs import close_env, task_spec
 from trakdis.evaluation import EpisodeStream, episode_score, race_survivors, run_episodes
-from trakdis.modules import DTModelConfig, NormalizedEncoder, copy_teacher_weights, make_dt_actor
+from trakdis.modules import NormalizedEncoder, copy_teacher_weights, find_dt_actor, make_dt_actor
 from trakdis.policies import PolicyHandle, load_encoder, load_teacher
 from trakdis.transforms.normalization import normalizer_parts, normalizer_with_keys
 from trakdis.transforms.visibility import OutOfViewFill
 from trakdis.utils import limits
-from trakdis.utils.checkpoint import read_checkpoint
 from trakdis.utils.logger import latest_run_file
 
 __all__ = [
@@ -50,7 +49,7 @@ def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_c
     (a normaliser of ``normalizer_keys``); ``proprio_dims``: dims of the estimate taken from the
     true state when acting; ``picker_odometry``: the estimate's pickers fused with the student's own
     commands (``PickerOdometry``) when acting."""
-    dt_cfg = DTModelConfig(**read_checkpoint(teacher.source)["dt_config"])
+    dt_cfg = find_dt_actor(teacher.actor).config  # the sizes the teacher's file was checked and built with
     student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=device)
     if weight_copy:
         copy_teacher_weights(student, teacher.actor)

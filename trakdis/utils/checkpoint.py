@@ -34,7 +34,6 @@ from __future__ import annotations
 import io
 import os
 import pickle
-import random
 import re
 import tempfile
 from pathlib import Path
