@@ -354,10 +354,6 @@ def load_encoder(path: str | Path, *, task: str | None = None, max_params: int =
     _check_names(data, path, ("kind", "task"))
     if data["kind"] != "encoder":
         raise FileFormatError(f"{path} is a {data['kind']!r} file, not an encoder (train one with recipes/train_encoder.py)")
-    missing = [k for k in ("encoder_kwargs", "state_dict") if k not in data]
-    if missing:
-        raise FileFormatError(f"encoder file {path} lacks {missing}")
-    _check_keys(data, ENCODER_KEYS, str(path), "encoder file")
     if task is not None and data.get("task") != task:
         raise ValueError(f"encoder {path} is for {data.get('task')}, not {task}")
     if data.get("task") is not None:
@@ -430,18 +426,15 @@ def _dt_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, max_p
         raise FileFormatError(f"{path}: a {data['kind']} policy file lacks 'dt_config'")
     cfg = _dt_config(str(path), data["dt_config"], max_params=max_params, max_activation_bytes=max_activation_bytes)
     encoder = None
-    if data.get("encoder"):
+    if data.get("encoder"):  # checked (encoder_from_dict) and built before the actor: a bad one is refused first
         check_render_version(data["encoder"], data["task"], f"{path} (its encoder)")
-        _check_encoder_dict(data["encoder"], f"{path} (its encoder)", max_params=max_params,
-                            max_activation_bytes=max_activation_bytes)
+        encoder = encoder_from_dict(data["encoder"], source=f"{path} (its encoder)", max_params=max_params,
+                                    max_activation_bytes=max_activation_bytes)
     actor = make_dt_actor(cfg, observation_key=data["observation_key"], device=device)
     try:
         actor.load_state_dict(data["actor"])
     except RuntimeError as err:
         raise FileFormatError(f"{path}: actor weights do not match its dt_config: {err}") from err
-    if data.get("encoder"):
-        encoder = encoder_from_dict(data["encoder"], source=f"{path} (its encoder)", max_params=max_params,
-                                    max_activation_bytes=max_activation_bytes)
     if data["kind"] == "student" and encoder is None:
         raise FileFormatError(f"{path}: a student policy file must contain its encoder")
     return dict(
