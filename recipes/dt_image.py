@@ -89,7 +89,8 @@ def main(argv=None) -> dict:
                           image_size=cfg.image_size, log=run.print, progress=cfg.progress)
     data, lengths = load_trajectories(path, keys=("pixels", "action", "reward"), action_labels=cfg.data.action_labels)
     trunk = cfg.trunk.make(cfg.image_size).to(cfg.device)
-    dt_cfg = cfg.model.for_task(cfg.trunk.feature_dim, spec.action_dim, cfg.horizon, hidden_action_dims=recipe_hidden_action_dims(cfg.task))
+    dt_cfg = cfg.model.for_task(cfg.trunk.feature_dim, spec.action_dim, cfg.horizon, hidden_action_dims=recipe_hidden_action_dims(cfg.task),
+                                grasp_dims=spec.grasp_dims)
     head = make_dt_actor(dt_cfg, observation_key="image_features", device=cfg.device)
     actor = with_image_trunk(head, trunk)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, action_eps=dt_cfg.action_eps)

@@ -117,7 +117,8 @@ def main(argv=None) -> dict:
     run = Run.start("online_dt", OnlineDTConfig, argv, presets=PRESETS, description=__doc__)
     cfg = run.cfg
     spec = task_spec(cfg.task, horizon=cfg.horizon)
-    dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon, hidden_action_dims=recipe_hidden_action_dims(cfg.task))
+    dt_cfg = cfg.model.for_task(spec.state_dim, spec.action_dim, cfg.horizon, hidden_action_dims=recipe_hidden_action_dims(cfg.task),
+                                grasp_dims=spec.grasp_dims)
     actor = make_dt_actor(dt_cfg, observation_key="state", device=cfg.device)
     loss = MaskedOnlineDTLoss(actor, lambda_entropy=cfg.lambda_entropy, learn_temperature=cfg.learn_temperature,
                               action_eps=dt_cfg.action_eps)

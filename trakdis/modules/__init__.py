@@ -4,6 +4,7 @@ from trakdis.modules.acting import DTActingPolicy
 from trakdis.modules.baselines import BCConfig, BCHead, ImageTrunk, ImageTrunkConfig, make_bc_actor, with_image_trunk
 from trakdis.modules.decision_transformer import (DTBackbone, DTModelConfig, StochasticDTActor, find_dt_actor,
                                                  make_dt_actor, recipe_hidden_action_dims)
+from trakdis.modules.grasp_distribution import GraspConditionedTanhNormal, picker_of_dims
 from trakdis.modules.normalized import NormalizedEncoder, NormalizedPolicy
 from trakdis.modules.encoder import EncoderEnsemble, SpatialSoftArgmax, StateEncoder, coordinate_channels, to_float_chw
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
@@ -32,6 +33,8 @@ __all__ = [
     "coordinate_channels",
     "copy_teacher_weights",
     "find_dt_actor",
+    "GraspConditionedTanhNormal",
+    "picker_of_dims",
     "make_dt_actor",
     "to_float_chw",
 ]

@@ -27,7 +27,7 @@ class DTActingPolicy(TensorDictModuleBase):
     Per call it reads ``observation_key`` ``[*B, state_dim]``, ``"return_to_go"`` ``[*B, 1]`` and
     ``"step_count"`` ``[*B, 1]`` (int; 0 means this env was just reset: its context is cleared)
     and writes ``"action"`` ``[*B, action_dim]`` for the newest step, drawn from the actor's
-    ``TanhNormal`` according to the current ``ExplorationType`` (``DETERMINISTIC``: ``tanh(loc)``;
+    ``TanhNormal`` (or ``GraspConditionedTanhNormal``) according to the current ``ExplorationType`` (``DETERMINISTIC``: ``tanh(loc)``;
     ``RANDOM``: a sample; default: the actor's default, deterministic). ``*B`` may be empty (an
     unbatched env), ``[1]`` or any shape; a change of batch shape re-allocates (and clears) the
     context. Call under ``actor.eval()`` to disable dropout. Inputs are cast to the actor's dtype
@@ -74,8 +74,11 @@ class DTActingPolicy(TensorDictModuleBase):
         tdms = [m for m in actor.modules() if isinstance(m, TensorDictModule) and m.module is self.dt]
         probs = [m for m in actor.modules() if isinstance(m, ProbabilisticTensorDictModule)]
         if len(probs) != 1:
-            raise ValueError(f"expected one probabilistic module (the TanhNormal head) in the actor, found {len(probs)}")
+            raise ValueError(f"expected one probabilistic module (the action distribution) in the actor, found {len(probs)}")
         self._prob_module = probs[0]
+        # the distribution's parameters in the order the DT's head returns them, under the names the
+        # probabilistic module reads (the head's out_keys)
+        self._dist_keys = tdms[0].out_keys if tdms else list(self.dt.dist_keys)
         if observation_key is None:
             if not tdms:
                 raise ValueError("cannot infer observation_key from the actor; pass observation_key=")
@@ -142,8 +145,8 @@ class DTActingPolicy(TensorDictModuleBase):
         with torch.no_grad():
             if self._n != n or self._obs.device != obs.device:
                 self._allocate(n, obs.device, obs.dtype)
-            loc, scale = self._step(obs, rtg, step_count)
-            small = TensorDict({"loc": loc, "scale": scale}, batch_size=[n])
+            params = self._step(obs, rtg, step_count)
+            small = TensorDict(dict(zip(self._dist_keys, params)), batch_size=[n])
             action = self._prob_module(small).get(self._prob_module.out_keys[0])
             self._act[:, self._ptr] = action
             self._ptr = (self._ptr + 1) % self.context_len

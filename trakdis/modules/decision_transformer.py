@@ -23,6 +23,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from trakdis.envs.specs import task_spec
 from trakdis.envs.task_defaults import task_defaults
+from trakdis.modules.grasp_distribution import GraspConditionedTanhNormal, picker_of_dims
 from trakdis.modules.transformer import CausalTransformer, KVCache, TransformerConfig
 
 __all__ = ["DTModelConfig", "DTBackbone", "StochasticDTActor", "make_dt_actor", "find_dt_actor",
@@ -88,6 +89,14 @@ class DTModelConfig:
     them learns to repeat them and seldom starts a grasp itself, and none on the diagonal folds, where
     hiding them lowered the student; a DT built directly hides none; empty: none; docs/recipes/online_dt.md)"""
 
+    grasp_head: bool = False
+    """model each grasp command as a Bernoulli and each picker's movement as a tanh-Gaussian conditioned on its
+    grasp decision (GraspConditionedTanhNormal), instead of one tanh-Gaussian per action dim, which averages
+    the closing lift into an unsure open gripper's movement (docs/recipes/online_dt.md)"""
+    grasp_dims: Optional[tuple[int, ...]] = None
+    """the action dims of the grasp head's commands (None: the task's pick commands, filled in by the recipes;
+    read only with --model.grasp-head)"""
+
     PAPER_SIZES: ClassVar[dict] = {"embed_dim": 256, "n_layer": 10, "n_head": 16, "context_len": 30, "dropout": 0.1}
     """The TraKDis paper's sizes (:meth:`paper`, the recipes' ``--preset paper``)."""
 
@@ -108,6 +117,12 @@ class DTModelConfig:
             if bad or len(set(self.hidden_action_dims)) != len(self.hidden_action_dims):
                 raise ValueError(f"DTModelConfig.hidden_action_dims={self.hidden_action_dims} must be distinct action "
                                  f"dims in [0, action_dim={self.action_dim})")
+        if self.grasp_dims is not None:
+            self.grasp_dims = tuple(int(d) for d in self.grasp_dims)
+            if self.action_dim is not None:
+                picker_of_dims(self.action_dim, self.grasp_dims)  # raises on bad dims
+        if self.grasp_head and self.grasp_dims is None and self.action_dim is not None and self.state_dim is not None:
+            raise ValueError("DTModelConfig.grasp_head needs grasp_dims (the recipes fill them in from the task)")
         self.transformer_config()  # validates embed_dim/n_head/activation/dropouts
 
     @property
@@ -124,15 +139,18 @@ class DTModelConfig:
         return cls(state_dim=state_dim, action_dim=action_dim, **kwargs)
 
     def for_task(self, state_dim: int, action_dim: int, horizon: int,
-                 hidden_action_dims: tuple[int, ...] = ()) -> "DTModelConfig":
+                 hidden_action_dims: tuple[int, ...] = (), grasp_dims: tuple[int, ...] = ()) -> "DTModelConfig":
         """A copy (``dataclasses.replace``) for a task: its observation and action widths, a
-        timestep table of at least ``horizon + 1`` entries, the attention dropout written out, and
+        timestep table of at least ``horizon + 1`` entries, the attention dropout written out,
         ``hidden_action_dims`` unless this config sets its own (the recipes pass
-        :func:`recipe_hidden_action_dims`)."""
+        :func:`recipe_hidden_action_dims`), and with :attr:`grasp_head` the task's ``grasp_dims``
+        (``TaskSpec.grasp_dims``) unless this config sets its own."""
+        grasp = (tuple(grasp_dims) if self.grasp_dims is None else self.grasp_dims) if self.grasp_head else None
         return dataclasses.replace(
             self, state_dim=state_dim, action_dim=action_dim, max_timestep=max(self.max_timestep, horizon + 1),
             attn_dropout=self.dropout if self.attn_dropout is None else self.attn_dropout,
-            hidden_action_dims=tuple(hidden_action_dims) if self.hidden_action_dims is None else self.hidden_action_dims)
+            hidden_action_dims=tuple(hidden_action_dims) if self.hidden_action_dims is None else self.hidden_action_dims,
+            grasp_dims=grasp)
 
     def transformer_config(self) -> TransformerConfig:
         return TransformerConfig(
@@ -313,24 +331,41 @@ class StochasticDTActor(nn.Module):
 
     def __init__(self, config: DTModelConfig):
         super().__init__()
+        if config.grasp_head and not config.grasp_dims:
+            raise ValueError("DTModelConfig.grasp_head needs grasp_dims")
         self.config = config
         self.transformer = DTBackbone(config)
-        self.head_loc = nn.Linear(config.embed_dim, config.action_dim)
-        self.head_log_std = nn.Linear(config.embed_dim, config.action_dim)
+        branches = 2 if config.grasp_head else 1  # open and closed grasp (GraspConditionedTanhNormal)
+        self.head_loc = nn.Linear(config.embed_dim, branches * config.action_dim)
+        self.head_log_std = nn.Linear(config.embed_dim, branches * config.action_dim)
         nn.init.orthogonal_(self.head_loc.weight)
         nn.init.zeros_(self.head_loc.bias)
         nn.init.zeros_(self.head_log_std.weight)
         frac = (config.init_log_std - config.log_std_min) / (config.log_std_max - config.log_std_min)
         nn.init.constant_(self.head_log_std.bias, math.atanh(2.0 * frac - 1.0))
+        if config.grasp_head:
+            self.head_grasp = nn.Linear(config.embed_dim, len(config.grasp_dims))
+            nn.init.zeros_(self.head_grasp.weight)
+            nn.init.zeros_(self.head_grasp.bias)
 
-    def head(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    @property
+    def dist_keys(self) -> tuple[str, ...]:
+        """The names of :meth:`head`'s outputs, the parameters of the actor's distribution."""
+        return ("loc", "scale", "grasp_logits") if self.config.grasp_head else ("loc", "scale")
+
+    def head(self, h: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``(loc, scale)`` ``[*, action_dim]``; with ``grasp_head``, ``(loc, scale, grasp_logits)`` with
+        ``loc``/``scale`` ``[*, 2, action_dim]`` (open, closed branch) and ``grasp_logits`` ``[*, grasp dims]``."""
         c = self.config
         log_std = torch.tanh(self.head_log_std(h))
         log_std = c.log_std_min + 0.5 * (c.log_std_max - c.log_std_min) * (log_std + 1.0)
         loc = self.head_loc(h)
         if c.loc_bound > 0:
             loc = c.loc_bound * torch.tanh(loc / c.loc_bound)
-        return loc, log_std.exp()
+        if not c.grasp_head:
+            return loc, log_std.exp()
+        branches = (*h.shape[:-1], 2, c.action_dim)
+        return loc.reshape(branches), log_std.exp().reshape(branches), self.head_grasp(h)
 
     def forward(self, observation, action, return_to_go, timestep, mask=None):
         return self.head(self.transformer(observation, action, return_to_go, timestep, mask))
@@ -343,7 +378,8 @@ def make_dt_actor(
 
     The actor reads ``[observation_key, "action", "return_to_go", "timestep", "mask"]`` over
     ``[B, K]`` windows, writes ``"loc"``/``"scale"`` and an ``"action"`` drawn from
-    ``TanhNormal(loc, scale, low=-1, high=1)`` according to the current ``ExplorationType``
+    ``TanhNormal(loc, scale, low=-1, high=1)`` (with ``config.grasp_head``: also ``"grasp_logits"``, and
+    :class:`~trakdis.modules.GraspConditionedTanhNormal`) according to the current ``ExplorationType``
     (deterministic: ``tanh(loc)``; random: a sample). ``actor.get_dist(td)`` gives the per-step
     distribution (log-prob shape ``[B, K]``) for the losses; it is also accepted by
     ``torchrl.objectives.OnlineDTLoss``.
@@ -353,21 +389,14 @@ def make_dt_actor(
     net = StochasticDTActor(config)
     if device is not None:
         net = net.to(device)
-    module = TensorDictModule(
-        net,
-        in_keys=[observation_key, "action", "return_to_go", "timestep", "mask"],
-        out_keys=["loc", "scale"],
-    )
+    keys = list(net.dist_keys)
+    module = TensorDictModule(net, in_keys=[observation_key, "action", "return_to_go", "timestep", "mask"], out_keys=keys)
     spec = Bounded(low=-1.0, high=1.0, shape=(config.action_dim,), device=device)
-    return ProbabilisticActor(
-        module,
-        in_keys=["loc", "scale"],
-        out_keys=["action"],
-        spec=spec,
-        distribution_class=TanhNormal,
-        distribution_kwargs={"low": -1.0, "high": 1.0},
-        return_log_prob=False,
-    )
+    dist_class, dist_kwargs = TanhNormal, {"low": -1.0, "high": 1.0}
+    if config.grasp_head:
+        dist_class, dist_kwargs = GraspConditionedTanhNormal, {"grasp_dims": tuple(config.grasp_dims)}
+    return ProbabilisticActor(module, in_keys=keys, out_keys=["action"], spec=spec, distribution_class=dist_class,
+                              distribution_kwargs=dist_kwargs, return_log_prob=False)
 
 
 def find_dt_actor(actor: nn.Module) -> StochasticDTActor:

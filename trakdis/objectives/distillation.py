@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
@@ -143,7 +144,8 @@ class DistillationLoss(LossModule):
         """The teacher's per-step distribution, always computed in eval mode (no dropout).
 
         Returns ``(action, loc, scale)``: the deterministic action and the pre-tanh Gaussian's
-        parameters, each ``[*B, K, action_dim]``.
+        parameters, each ``[*B, K, action_dim]`` (with a grasp head ``loc``/``scale`` are
+        ``[*B, K, 2, action_dim]``, the open and closed branches).
         """
         teacher = self.teacher_network
         td = tensordict.copy()
@@ -159,9 +161,12 @@ class DistillationLoss(LossModule):
                 dist = teacher.get_dist(td)
         finally:
             teacher.train(was_training)
-        out = (dist.deterministic_sample, dist.root_dist.loc, dist.root_dist.scale)
+        if hasattr(dist, "root_dist"):
+            out = (dist.deterministic_sample, dist.root_dist.loc, dist.root_dist.scale)
+        else:  # the grasp head (GraspConditionedTanhNormal): its branches' parameters
+            out = (dist.deterministic_sample, dist.loc, dist.scale)
         if self.teacher_context == "step":
-            out = tuple(x.squeeze(-2) for x in out)
+            out = tuple(x.squeeze(len(td.batch_size) - 1) for x in out)
         return out
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -171,12 +176,19 @@ class DistillationLoss(LossModule):
         with torch.no_grad():
             t_action, t_loc, t_scale = self.teacher_dist(tensordict)
         s_action = s_dist.deterministic_sample
+        grasp_head = hasattr(s_dist, "movement_given")
         if self.loss_function == "nll":
             per_step = -s_dist.log_prob(clamp_action(t_action, self.action_eps))
+        elif grasp_head:  # movement in the teacher's grasp branches, plus the grasps' cross-entropy
+            per_step = ((s_dist.movement_given(t_action) - t_action).pow(2) * s_dist.movement_mask).sum(-1) + \
+                F.binary_cross_entropy_with_logits(s_dist.grasp_logits, s_dist.closed(t_action).to(t_action.dtype),
+                                                   reduction="none").sum(-1)
         else:
             per_step = (s_action - t_action).pow(2).sum(-1)
         mask = get_mask(tensordict, self.tensor_keys.mask, per_step, "DistillationLoss")
         out = {"loss_distill": masked_mean(per_step, mask)}
+        if self.kl_coef > 0 and grasp_head:
+            raise ValueError("DistillationLoss: kl_coef > 0 needs TanhNormal actors; the grasp head's KL is not implemented")
         if self.kl_coef > 0:
             # KL is invariant under a bijection applied to both distributions, and both are the
             # same tanh of a diagonal Gaussian: the KL of the TanhNormals is exactly the

@@ -119,7 +119,9 @@ class MaskedOnlineDTLoss(OnlineDTLoss):
     * for TorchRL's ``TanhNormal`` over [-1, 1] (:func:`~trakdis.modules.make_dt_actor`) the
       log-probabilities are computed in closed form, with the same operations and random draws as
       ``TanhNormal`` (same numbers) but without building distribution objects; other distributions
-      go through ``actor.get_dist`` and ``OnlineDTLoss.get_entropy_bonus``.
+      go through ``actor.get_dist`` and ``OnlineDTLoss.get_entropy_bonus``, or the distribution's own
+      ``entropy_estimate`` where it has one (the grasp head's
+      :class:`~trakdis.modules.GraspConditionedTanhNormal`).
 
     With a full mask and the same temperature, ``loss_nll``/``loss_entropy`` equal ``OnlineDTLoss``'s
     ``loss_log_likelihood``/``loss_entropy`` (for targets inside the clamp range).
@@ -213,6 +215,13 @@ class MaskedOnlineDTLoss(OnlineDTLoss):
             if prefix + name not in state_dict:
                 state_dict[prefix + name] = getattr(self, name).detach().clone()
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def get_entropy_bonus(self, dist) -> torch.Tensor:
+        # OnlineDTLoss's estimate needs a reparameterised sample, which a discrete grasp command has
+        # not: a distribution with its own estimate (GraspConditionedTanhNormal) gives it
+        if hasattr(dist, "entropy_estimate"):
+            return dist.entropy_estimate(self.samples_mc_entropy)
+        return super().get_entropy_bonus(dist)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
