@@ -39,6 +39,9 @@ class EvaluateConfig(RunConfig):
     """task (required for the expert; a policy file knows its own)"""
     trials: int = 100
     """episodes per noise level (--noise-levels)"""
+    first_episode: int = 0
+    """play the episodes from this one on (a multiple of --num-envs; noise-free levels only): a part of a longer
+    evaluation, its episodes those of the whole one (trakdis.evaluation.chunks joins the parts)"""
     split: Literal["train", "eval"] = "eval"
     """configuration pool of the episodes"""
     horizon: Optional[int] = None
@@ -75,8 +78,11 @@ class EvaluateConfig(RunConfig):
                              f"(got {list(self.noise_levels)})")
         if self.horizon is not None and self.horizon < 1:
             raise ValueError(f"--horizon {self.horizon}: the episode length must be >= 1 (none: the policy's own)")
-        check_options(self, sizes=("trials", "num_envs", "video_size", "max_params"), counts=("videos",),
+        check_options(self, sizes=("trials", "num_envs", "video_size", "max_params"), counts=("videos", "first_episode"),
                       positive=("fps",), nonnegative=("expert_noise",))
+        if self.first_episode and (self.first_episode % self.num_envs or any(self.noise_levels)):
+            raise ValueError(f"--first-episode {self.first_episode}: a multiple of --num-envs ({self.num_envs}), at "
+                             f"noise level 0 only (got {list(self.noise_levels)})")
         if self.horizon is not None:
             check_option("horizon", self.horizon, le=MAX_HORIZON, integer=True)
         super().__post_init__()
@@ -87,7 +93,8 @@ def main(argv=None) -> pd.DataFrame:
     cfg = run.cfg
     handle = load_policy(cfg.policy, task=cfg.task, horizon=cfg.horizon, expert_noise=cfg.expert_noise, device=cfg.device,
                          max_params=cfg.max_params)
-    num_envs = cap_workers(cfg.num_envs, cfg.trials, unit="trials", warn=run.print)  # no env without an episode
+    # no env without an episode (of the whole evaluation, for a part of one: the same envs play the same episodes)
+    num_envs = cap_workers(cfg.num_envs, cfg.first_episode + cfg.trials, unit="trials", warn=run.print)
     spec = task_spec(handle.task, horizon=handle.horizon)
     name = handle.kind if handle.kind == "expert" else f"{handle.kind} ({handle.source})"
     run.print(f"evaluating {name} on {handle.task} ({cfg.split} split), {cfg.trials} trials x "
@@ -106,11 +113,12 @@ def main(argv=None) -> pd.DataFrame:
 
         try:  # the same configurations for every noise level (and every policy evaluated with this seed)
             res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.trials, max_steps=handle.horizon,
-                               desc=f"sigma={sigma:g}", seed=cfg.seed, on_episode=on_episode)
+                               desc=f"sigma={sigma:g}", seed=cfg.seed, on_episode=on_episode,
+                               skip_batches=cfg.first_episode // num_envs)
         finally:
             close_env(env)
         for k in range(len(res.final_performance)):
-            rows.append({"state_noise": sigma, "episode": k, "final_normalized_performance": res.final_performance[k],
+            rows.append({"state_noise": sigma, "episode": cfg.first_episode + k, "final_normalized_performance": res.final_performance[k],
                          "return": res.returns[k], "length": int(res.lengths[k]), "sim_unstable": bool(res.unstable[k]),
                          **(grasps[k] or {}), **(errors[k] if errors else {})})
         s = summarize(res.final_performance)

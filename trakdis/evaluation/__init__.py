@@ -1,7 +1,8 @@
 """Evaluation: playing episodes of a policy in a batched env and summarising their scores
 (:mod:`.episodes`), the scripted expert's scores cached on disk (:mod:`.expert_scores`), and
 evaluations of a saved policy in a background process at low priority (:mod:`.background`), a
-run's evaluation protocol: the same episodes every time, their scores logged (:mod:`.protocol`), and
+run's evaluation protocol: the same episodes every time, their scores logged (:mod:`.protocol`), an
+evaluation cut into parts that run side by side and joined again (:mod:`.chunks`), and
 where a cloth policy closes its grippers (:mod:`.grasps`)."""
 from .background import BackgroundEvaluation
 from .episodes import (
@@ -22,6 +23,7 @@ from .episodes import (
     worker_env_fns,
     write_summary_table,
 )
+from .chunks import evaluation_parts, merge_evaluations
 from .grasps import FAR_CLOSE_CM, grasp_report, summarize_grasps
 from .protocol import EvalConfig, EvalProtocol, RunEnvs, compare_scores, log_scores
 from .expert_scores import (
@@ -34,6 +36,8 @@ from .expert_scores import (
 
 __all__ = [
     "COLLECTORS",
+    "evaluation_parts",
+    "merge_evaluations",
     "worker_env_fns",
     "BackgroundEvaluation",
     "EvalConfig",

@@ -222,6 +222,7 @@ def run_episodes(
     on_episode: Callable[[TensorDictBase], Any] | None = None,
     seed: int | None = None,
     collector: str = "sync",
+    skip_batches: int = 0,
 ) -> EpisodeResults:
     """Play ``num_episodes`` episodes of ``policy`` (a TensorDict module) on ``N`` environments with
     a TorchRL collector, ``max_steps`` steps per episode.
@@ -250,13 +251,20 @@ def run_episodes(
     the same initial configurations, with either collector (common random numbers for comparing
     policies; exact resumption). Sampled actions and a policy's own noise are drawn per process
     with ``"multi_sync"``, so only deterministic policies give the same episodes there.
+
+    ``skip_batches`` (``"sync"`` only): start at the episodes of the batch ``skip_batches`` of a call with the same
+    ``seed`` and envs, episode ``skip_batches * N`` on: each env draws that many initial configurations first
+    (resets, nothing stepped). The episodes are then that call's, value for value, as long as none of the skipped
+    ones would have ended early (an early end resets its env once more) and nothing else in ``env`` draws random
+    numbers per step (a ``StateNoise``): :mod:`trakdis.evaluation.chunks` checks this when it joins the parts of an
+    evaluation.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
     finals, returns, lengths, unstable, kept = [], [], [], [], []
     t0 = time.perf_counter()
     stream = EpisodeStream(env, policy, max_steps=max_steps, deterministic=deterministic, seed=seed,
-                           collector=collector)
+                           collector=collector, skip_batches=skip_batches)
     bar = progress(total=num_episodes, desc=desc)
     try:
         with torch.no_grad(), set_exploration_type(stream.exploration_type):
@@ -307,15 +315,17 @@ class EpisodeStream:
     resets, in the same order). Used to race several policies on the same configurations, each in its
     own stream, dropping the clearly worse ones early (:func:`trakdis.student.weight_copy_race`).
 
-    ``env``, ``policy``, ``max_steps``, ``deterministic``, ``seed`` and ``collector``: as in
+    ``env``, ``policy``, ``max_steps``, ``deterministic``, ``seed``, ``collector`` and ``skip_batches``: as in
     :func:`run_episodes`. :meth:`close` (or leaving a ``with`` block) shuts the collector down; with
     ``"sync"``, ``env`` stays open (the caller's).
     """
 
     def __init__(self, env, policy: Callable[[TensorDictBase], TensorDictBase], *, max_steps: int,
-                 deterministic: bool = True, seed: int | None = None, collector: str = "sync"):
+                 deterministic: bool = True, seed: int | None = None, collector: str = "sync", skip_batches: int = 0):
         if collector not in COLLECTORS:
             raise ValueError(f"collector must be one of {COLLECTORS}, got {collector!r}")
+        if skip_batches and (collector != "sync" or seed is None):
+            raise ValueError(f"skip_batches={skip_batches} needs collector='sync' and a seed")
         self.exploration_type = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
         self.collector, self._env = collector, env
         self._threads = torch.get_num_threads()
@@ -326,6 +336,8 @@ class EpisodeStream:
             if seed is not None:
                 # before the Collector: its constructor resets env, and that reset starts the first episodes
                 env.set_seed(seed)
+                for _ in range(skip_batches):  # the configurations of the skipped batches, drawn and not played
+                    env.reset()
             # use_buffers=False: the batch is stacked from the steps as env.rollout does (keys the policy
             # writes beyond the env's specs, e.g. a TanhNormal's loc/scale, kept)
             self._coll = Collector(env, policy, frames_per_batch=self.num_envs * max_steps, total_frames=-1,

@@ -39,14 +39,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
-from typing import Iterator
+from typing import Callable, Iterator, Sequence
 
 import pandas as pd
 
 from .checkpoint import atomic_write_bytes
 from .run import Run
 
-__all__ = ["BackgroundStage", "Stages", "import_recipe"]
+__all__ = ["BackgroundStage", "Parts", "Stages", "import_recipe"]
 
 
 # A background stage's process runs its recipe through this bootstrap (argv: the pipeline's pid, the
@@ -78,6 +78,17 @@ def import_recipe(path: str | Path, prefix: str = "trakdis_recipe_") -> ModuleTy
     sys.modules[spec.name] = module  # dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
+
+
+@dataclass(frozen=True)
+class Parts:
+    """A stage that may run as parts side by side: part ``i`` as ``<run_name>-part<i>`` with the stage's arguments
+    followed by ``args[i]``, then ``merge(part directories, the stage's directory)`` writes the stage's output from
+    theirs and returns True, or returns False when they cannot stand for it (the stage then runs whole). ``merge``
+    must be importable by name (a module-level function): a worker on another machine calls it."""
+
+    args: tuple[tuple[str, ...], ...]
+    merge: Callable[[list[Path], Path], bool]
 
 
 @dataclass
@@ -112,23 +123,19 @@ class Stages:
         self._modules: dict[str, ModuleType] = {}
 
     def run(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None,
-            background: bool = False) -> Path | BackgroundStage:
+            background: bool = False, after: Sequence[Path] = (), cpus: int | None = None,
+            parts: Parts | None = None) -> Path | BackgroundStage:
         """Run ``<recipes>/<recipe>.py`` as ``<root>/<recipe>/<run_name>`` unless its ``output`` file
         exists; returns the run directory. With ``background``, start it as a low-priority subprocess
-        instead (its output in ``<pipeline run dir>/<run_name>.log``) and return it for :meth:`wait`."""
-        cfg = self.pipeline.cfg
-        directory = Path(cfg.root) / recipe / run_name
+        instead (its output in ``<pipeline run dir>/<run_name>.log``) and return it for :meth:`wait`.
+        ``after`` (stages it needs beyond those its arguments name), ``cpus`` and ``parts`` are for a scheduler
+        that runs stages side by side (:class:`~trakdis.utils.ray_stages.RayStages`): here the stages run in
+        turn, each whole."""
+        directory = self.directory(recipe, run_name)
         if (directory / output).exists():
             self.pipeline.print(f"{recipe}: {directory / output} exists, skipped")
             return directory
-        seed = cfg.seed if seed is None else seed
-        common = ["--name", run_name, "--root", cfg.root, "--seed", str(seed), "--threads", str(cfg.threads)]
-        if not cfg.progress or background:
-            common.append("--no-progress")
-        if cfg.logger != "csv":
-            common += ["--logger", cfg.logger]
-        if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv", "config.json")):
-            common.append("--resume")  # an interrupted stage continues (a recipe without a checkpoint starts over)
+        common = self.common_args(recipe, run_name, seed=seed, progress=not background)
         script = self.recipes / f"{recipe}.py"
         if background:
             log_path = self.pipeline.dir / f"{run_name}.log"
@@ -144,6 +151,25 @@ class Stages:
         self._record(f"{recipe}/{run_name}", time.perf_counter() - start)
         self.pipeline.print(f"{recipe}: done in {self.timings[f'{recipe}/{run_name}']:.0f} s ({directory})")
         return directory
+
+    def directory(self, recipe: str, run_name: str) -> Path:
+        """The run directory of the stage ``run_name`` of ``recipe``: ``<root>/<recipe>/<run_name>``."""
+        return Path(self.pipeline.cfg.root) / recipe / run_name
+
+    def common_args(self, recipe: str, run_name: str, *, seed: int | None = None, progress: bool = True) -> list[str]:
+        """The options every stage gets from the pipeline's run (``--name`` ... ``--logger``; ``--resume`` when the
+        stage's directory shows an interrupted run)."""
+        cfg = self.pipeline.cfg
+        seed = cfg.seed if seed is None else seed
+        common = ["--name", run_name, "--root", cfg.root, "--seed", str(seed), "--threads", str(cfg.threads)]
+        if not cfg.progress or not progress:
+            common.append("--no-progress")
+        if cfg.logger != "csv":
+            common += ["--logger", cfg.logger]
+        directory = self.directory(recipe, run_name)
+        if any((directory / f).exists() for f in ("checkpoint.pt", "log.csv", "config.json")):
+            common.append("--resume")  # an interrupted stage continues (a recipe without a checkpoint starts over)
+        return common
 
     def recipe(self, recipe: str) -> ModuleType:
         """The recipe script ``<recipes>/<recipe>.py`` imported as a module (once): its ``main``, its configuration."""
@@ -171,11 +197,12 @@ class Stages:
         self.pipeline.print(f"{name}: done in the background ({job.directory})")
         return job.directory
 
-    def submit(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None) -> Path:
+    def submit(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None,
+               **scheduling) -> Path:
         """Queue a stage (the arguments of :meth:`run`) to run in the background as soon as fewer than
         ``max_background`` queued stages run (inside :meth:`queued`, whose thread starts it while the
         foreground stages run). Returns its run directory, which holds ``output`` once :meth:`drain`
-        returned."""
+        returned. ``scheduling``: :meth:`run`'s ``after``, ``cpus`` and ``parts`` (unused here)."""
         with self._lock:
             self._queue.append((recipe, run_name, output, list(args), seed))
         self.pump()
