@@ -50,6 +50,7 @@ import functools
 import sys
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -63,13 +64,15 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 
 from trakdis.envs.specs import TASKS, TaskName  # noqa: E402
 from trakdis.utils.checkpoint import atomic_write_bytes  # noqa: E402
-from trakdis.evaluation import markdown_table, paired_difference, read_final_scores, standard_error  # noqa: E402
+from trakdis.evaluation import (evaluation_parts, markdown_table, paired_difference, read_final_scores,  # noqa: E402
+                                standard_error)
 from trakdis.method import (ENCODER_ARGS, TEACHER_ARGS, baseline_stage_args, check_teacher_selection,  # noqa: E402
                             encoder_stage_args, no_distill_stage_args, student_stage_args, teacher_candidates,
                             teacher_stage, teacher_stage_args)
 from trakdis.utils.config import load_config, parse_config  # noqa: E402
 from trakdis.utils.plot import plot_mean_std  # noqa: E402
 from trakdis.utils.run import Run, RunConfig  # noqa: E402
+from trakdis.utils.ray_stages import RayConfig, RayStages, StageFailed, make_stages  # noqa: E402
 from trakdis.utils.stages import Stages  # noqa: E402
 
 RECIPES = ROOT / "recipes"
@@ -103,7 +106,7 @@ PAPER_TABLE1 = {
 
 
 @dataclass
-class Table1Config(RunConfig):
+class Table1Config(RayConfig, RunConfig):
     """Table I (expert, teacher, TraKDis, BC-image, DT-image) and the ablations, over tasks and seeds."""
 
     tasks: tuple[TaskName, ...] = TASKS
@@ -213,6 +216,8 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     base = chain = f"{name}-{task}-s{seed}"  # chain: the stages after the teacher, named after the kept candidate
     stage = functools.partial(stages.run, seed=seed)  # every stage of this task and seed
     evaluation = functools.partial(stages.submit if cfg.overlap else stages.run, "evaluate", seed=seed)
+    # side by side (Ray), the stages that would collect one of the task's datasets at once wait for its first
+    data, extra = (functools.partial(stages.first_of, f"{task}-{kind}", seed=seed) for kind in ("data", "extra"))
     parallel = ["--parallel"] if cfg.parallel else ["--no-parallel"]
     methods = set(cfg.methods)
     needs_teacher = methods & {"teacher", *STUDENT_OF_TEACHER}
@@ -223,12 +228,13 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     def evaluate(method: str, policy_args: list[str]) -> None:  # --trials episodes of one method
         prefix = chain if method in STUDENT_OF_TEACHER or method == "teacher" else base
         evals[method] = evaluation(f"{prefix}-eval-{STAGE_NAMES.get(method, method)}", "summary.csv",
-                                   [*policy_args, "--trials", str(cfg.trials), "--videos", "0", *parallel])
+                                   [*policy_args, "--trials", str(cfg.trials), "--videos", "0", *parallel],
+                                   parts=evaluation_parts(cfg.trials, cfg.eval_chunk))
 
     def made(method: str, directory: Path) -> Path:  # a method's policy exists: evaluate it (and the expert)
         policies[method] = directory
         # (the policy file is missing only under --report, whose stages run nothing: the expert is then named below)
-        if "expert" in methods and "expert" not in evals and (directory / "policy.pt").exists():
+        if "expert" in methods and "expert" not in evals and (stages.wait(directory) / "policy.pt").exists():
             from trakdis.policies import load_policy
 
             # the expert plays episodes of the other policies' length
@@ -242,12 +248,12 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
         teacher, kept = teacher_stage(stages, f"{base}-teacher", teacher_stage_args(task, cfg.teacher_args), seed=seed,
                                       candidates=teacher_candidates(task, cfg.teacher_candidates),
                                       select_episodes=cfg.teacher_select_episodes,
-                                      margin=cfg.teacher_select_margin, parallel=cfg.parallel)
+                                      margin=cfg.teacher_select_margin, parallel=cfg.parallel, group=f"{task}-data")
         chain = f"{base}-c{kept}" if kept else base
         made("teacher", teacher)
 
     def encoder_stage(run_name: str, *flags: str) -> Path:  # the method's encoder (+ an ablation's flags)
-        return stage("train_encoder", run_name, "encoder.pt",
+        return extra("train_encoder", run_name, "encoder.pt",
                      [*encoder_stage_args(task, teacher, cfg.encoder_args, parallel=cfg.parallel), *flags])
 
     def student_stage(run_name: str, encoder: Path, *flags: str) -> Path:  # the method's student (+ flags)
@@ -267,10 +273,10 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
     # the baselines learn from the method's demonstrations and evaluate nothing themselves: evaluate.py does
     # (their --*-args may say otherwise)
     if "bc_image" in methods:
-        made("bc_image", stage("bc_image", f"{base}-bc_image", "policy.pt", baseline_stage_args(task, cfg.bc_args)))
+        made("bc_image", data("bc_image", f"{base}-bc_image", "policy.pt", baseline_stage_args(task, cfg.bc_args)))
     if "dt_image" in methods:
-        made("dt_image", stage("dt_image", f"{base}-dt_image", "policy.pt",
-                               baseline_stage_args(task, cfg.dt_image_args)))
+        made("dt_image", data("dt_image", f"{base}-dt_image", "policy.pt",
+                              baseline_stage_args(task, cfg.dt_image_args)))
     if "expert" in methods and "expert" not in evals:  # the expert alone
         evaluate("expert", ["--policy", "expert", "--task", task, "--horizon", "100"])
     robust = {}
@@ -287,7 +293,8 @@ def run_task_seed(stages: Stages, cfg: Table1Config, name: str, task: str,
             robust[method] = ((evals["trakdis"],) if reuse else ()) + (
                 (evaluation(f"{chain}-noise-{method}", "summary.csv",
                             ["--policy", str(policy), "--trials", str(trials), "--videos", "0", *parallel,
-                             "--noise-levels", *levels]),) if levels else ())
+                             "--noise-levels", *levels], parts=evaluation_parts(trials, 0, noise_levels=levels)),)
+                if levels else ())
     students = {m: policies[m] for m in CURVE_METHODS if m in policies}
     return {m: evals[m] for m in METHODS if m in evals}, robust, students
 
@@ -320,10 +327,17 @@ class FinishedStages:
     def __init__(self, run: Run):
         self.pipeline = run
 
-    def run(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None) -> Path:
+    def run(self, recipe: str, run_name: str, output: str, args: list[str], *, seed: int | None = None,
+            **scheduling) -> Path:
         return Path(self.pipeline.cfg.root) / recipe / run_name
 
     submit = run
+
+    def first_of(self, group: str, *args, **kwargs) -> Path:
+        return self.run(*args, **kwargs)
+
+    def wait(self, directory: Path) -> Path:
+        return directory
 
     @contextlib.contextmanager
     def queued(self) -> Iterator["FinishedStages"]:
@@ -346,7 +360,8 @@ def finished(evals: dict, robust: dict, students: dict) -> tuple[dict, dict, dic
 REPORT_FLAGS = ("tasks", "methods")
 """--report reads the run as it was configured; these may narrow what it tabulates (any other setting would name or
 label its stages otherwise), beside the settings of this invocation alone (``REPORT_OWN``)"""
-REPORT_OWN = ("name", "root", "resume", "report", "progress", "threads", "logger", "device", "stop_after")
+REPORT_OWN = ("name", "root", "resume", "report", "progress", "threads", "logger", "device", "stop_after", "ray",
+              "ray_address", "ray_cpus", "eval_chunk")
 
 
 def open_report(cfg: Table1Config, argv: list[str]) -> Run:
@@ -537,27 +552,42 @@ def main(argv=None) -> pd.DataFrame:
                                                              description=__doc__)
     cfg = run.cfg
     seeds = list(range(cfg.seed, cfg.seed + cfg.seeds))
-    stages = FinishedStages(run) if report else Stages(run, RECIPES, timings_path=run.dir / "timings.csv")
+    stages = FinishedStages(run) if report else make_stages(run, RECIPES, timings_path=run.dir / "timings.csv")
     evals: dict[tuple[str, str], list[Path]] = {}
     robust: dict[tuple[str, str], list[tuple[Path, ...]]] = {}
     students: dict[tuple[str, str], list[Path]] = {}
     start = time.perf_counter()
+    chains = [(task, seed) for task in cfg.tasks for seed in seeds]
+
+    def chain(task: str, seed: int):
+        try:
+            return run_task_seed(stages, cfg, cfg.name, task, seed)
+        except FileNotFoundError as err:  # --report: a teacher candidates' selection not played yet
+            if not report:
+                raise
+            run.print(f"{task} seed {seed}: nothing to tabulate yet ({err})")
+        except StageFailed:  # under Ray: reported with the others when the queue drains
+            pass
+        return None
+
     with stages.queued():  # leaving it: every evaluation has run
-        for task in cfg.tasks:
-            for seed in seeds:
-                try:
-                    done, noise, arms = run_task_seed(stages, cfg, cfg.name, task, seed)
-                except FileNotFoundError as err:  # --report: a teacher candidates' selection not played yet
-                    if not report:
-                        raise
-                    run.print(f"{task} seed {seed}: nothing to tabulate yet ({err})")
-                    continue
-                for method, directory in arms.items():
-                    students.setdefault((task, method), []).append(directory)
-                for method, directory in done.items():
-                    evals.setdefault((task, method), []).append(directory)
-                for method, directories in noise.items():
-                    robust.setdefault((task, method), []).append(directories)
+        if isinstance(stages, RayStages):  # each chain submits its stages from its own thread, waiting where it reads
+            for recipe in ("online_dt", "distill"):  # one import each, not one per thread
+                recipe_module(recipe)
+            with ThreadPoolExecutor(len(chains), thread_name_prefix="table1-chain") as pool:
+                results = list(pool.map(lambda c: chain(*c), chains))
+        else:
+            results = [chain(task, seed) for task, seed in chains]
+        for (task, seed), result in zip(chains, results):
+            if result is None:
+                continue
+            done, noise, arms = result
+            for method, directory in arms.items():
+                students.setdefault((task, method), []).append(directory)
+            for method, directory in done.items():
+                evals.setdefault((task, method), []).append(directory)
+            for method, directories in noise.items():
+                robust.setdefault((task, method), []).append(directories)
     note = ""
     if report:
         evals, robust, students, total, n_done = finished(evals, robust, students)

@@ -12,6 +12,7 @@ and a caller's ``extra`` options last (the later flag wins).
 """
 from __future__ import annotations
 
+import functools
 import json
 import shlex
 from os import PathLike
@@ -130,7 +131,8 @@ def baseline_stage_args(task: str, extra: str = "") -> list[str]:
 
 
 def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, candidates: int = 1,
-                  select_episodes: int = 30, margin: float = 0.0, parallel: bool = True) -> tuple[Path, int]:
+                  select_episodes: int = 30, margin: float = 0.0, parallel: bool = True,
+                  group: str | None = None) -> tuple[Path, int]:
     """The privileged teacher: ``recipes/online_dt.py`` with ``args`` as the stage ``run_name``. With ``candidates``
     > 1 the stage runs that many times, candidate ``i`` as ``<run_name>-c<i>`` with seed ``seed +
     CANDIDATE_SEED_STRIDE * i`` (candidate 0 is the plain stage, bit for bit), each plays the same
@@ -140,19 +142,21 @@ def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, 
     one more draw of the same stage). A seed's teacher can fail outright while the others reach the expert
     (docs/recipes/distill.md); the train split tells them apart. The choice and every candidate's scores are
     written to ``<pipeline run dir>/<run_name>-selection.json``. Returns the kept teacher's run directory and its
-    index (callers name the stages that depend on it after it)."""
+    index (callers name the stages that depend on it after it). ``group``: the candidates are stages of that group
+    (:meth:`~trakdis.utils.stages.Stages.first_of`: the first one collects the dataset, side by side the others
+    wait for it)."""
     check_teacher_selection(candidates, select_episodes, margin)
     names = [run_name] + [f"{run_name}-c{i}" for i in range(1, candidates)]
-    teachers = [stages.run("online_dt", n, "policy.pt", args, seed=seed + CANDIDATE_SEED_STRIDE * i)
+    submit = stages.run if group is None else functools.partial(stages.first_of, group)
+    teachers = [submit("online_dt", n, "policy.pt", args, seed=seed + CANDIDATE_SEED_STRIDE * i)
                 for i, n in enumerate(names)]
     if candidates == 1:
         return teachers[0], 0
-    scores = []
-    for n, teacher in zip(names, teachers):  # the same seed for every candidate: the same configurations
-        select = stages.run("evaluate", f"{n}-select", "summary.csv",
-                            ["--policy", str(teacher), "--split", "train", "--trials", str(select_episodes),
-                             "--videos", "0", *(["--parallel"] if parallel else [])], seed=seed)
-        scores.append(read_final_scores(select).tolist())
+    selects = [stages.run("evaluate", f"{n}-select", "summary.csv",  # the same seed: the same configurations
+                          ["--policy", str(teacher), "--split", "train", "--trials", str(select_episodes),
+                           "--videos", "0", *(["--parallel"] if parallel else [])], seed=seed)
+               for n, teacher in zip(names, teachers)]
+    scores = [read_final_scores(stages.wait(select)).tolist() for select in selects]
     kept = pick_candidate(scores, margin=margin)
     means = [sum(s) / len(s) for s in scores]
     stages.pipeline.print(f"teacher candidates on {select_episodes} train-split episodes: "

@@ -99,16 +99,12 @@ def load_benchmark():
     return module
 
 
-def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, dataset, monkeypatch, capsys):
-    """One task, one seed, every method at tiny sizes (in-process, as the benchmark runs its stages):
-    the table in the paper's layout with the paper's numbers beside ours, the curves PNG, and a
-    second call that finds every stage finished."""
-    monkeypatch.chdir(workdir)
-    torch_threads = torch.get_num_threads()
+def tiny_table1_args() -> list[str]:
+    """The tiny Table I: one task, one seed, every method, 2 trials, the noise levels 0 and 1e-3."""
     h, data = ["--horizon", str(HORIZON)], list(map(str, DATA))
     dt = list(map(str, TINY_DT)) + ["--batch-size", "4"]
     trunk = list(map(str, TRUNK))
-    args = ["--name", "t1", "--tasks", "ClothFold", "--seeds", "1", "--trials", "2", "--no-progress",
+    return ["--tasks", "ClothFold", "--seeds", "1", "--trials", "2", "--no-progress",
             "--teacher-args=" + " ".join([*h, *data, *dt, "--offline-updates", "2", "--online-rounds", "0",
                                           "--eval-episodes", "1", "--expert-episodes", "0", "--log-every", "1"]),
             "--encoder-args=" + " ".join([*h, *data, "--epochs", "1", "--batch-size", "8", "--channels", "4", "4", "4", "4",
@@ -121,6 +117,15 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
             "--dt-image-args=" + " ".join([*h, *data, *trunk, *dt, "--updates", "1", "--log-every", "1"]),
             "--noise-levels", "0", "0.001", "--noise-trials", "2", "--no-parallel",  # workers: see the test below
             "--no-overlap"]  # evaluations in this process: ten background ones cost ~70 s of imports (tests/utils/test_stages.py)
+
+
+def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, dataset, monkeypatch, capsys):
+    """One task, one seed, every method at tiny sizes (in-process, as the benchmark runs its stages):
+    the table in the paper's layout with the paper's numbers beside ours, the curves PNG, and a
+    second call that finds every stage finished."""
+    monkeypatch.chdir(workdir)
+    torch_threads = torch.get_num_threads()
+    args = ["--name", "t1", *tiny_table1_args()]
     try:
         bench = load_benchmark()
         frame = bench.main(args)
@@ -205,6 +210,28 @@ def test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages(workdir, 
         torch.set_num_threads(torch_threads)
 
 
+def test_table1_tiny_on_a_local_2_cpu_ray_equals_the_serial_run(workdir, dataset, monkeypatch):
+    """The same tiny Table I with --ray (a local Ray of 2 CPUs; its own stages, under another name): the same
+    table1.csv, value for value; the noise ladder's two levels ran as two parts, merged."""
+    ray = pytest.importorskip("ray")
+    serial = workdir / "runs" / "table1" / "t1" / "table1.csv"
+    if not serial.exists():
+        pytest.skip("needs test_table1_tiny_leaves_table_and_curves_and_skips_finished_stages")
+    monkeypatch.chdir(workdir)
+    torch_threads = torch.get_num_threads()
+    try:
+        frame = load_benchmark().main(["--name", "t1ray", *tiny_table1_args(), "--ray", "--ray-cpus", "2"])
+    finally:
+        ray.shutdown()
+        torch.set_num_threads(torch_threads)
+    pd.testing.assert_frame_equal(frame, pd.read_csv(serial), check_exact=True)
+    ladder = workdir / "runs" / "evaluate" / "t1ray-ClothFold-s0-noise-trakdis_noise"
+    assert len(json.loads((ladder / "parts.json").read_text())) == 2
+    pd.testing.assert_frame_equal(pd.read_csv(ladder / "episodes.csv"), pd.read_csv(
+        workdir / "runs" / "evaluate" / "t1-ClothFold-s0-noise-trakdis_noise" / "episodes.csv"), check_exact=True)
+    assert len(pd.read_csv(workdir / "runs" / "table1" / "t1ray" / "timings.csv")) == 22 + 2  # + the ladder's parts
+
+
 @pytest.mark.parametrize("recipe,flags", [
     ("bc_image", ["--trunk.pad", "--trunk.feature-dim", "--loss-function", "--epochs", "--resume"]),
     ("dt_image", ["--trunk.pad", "--model.context-len", "--updates", "--eval-rtg", "--lambda-entropy"]),
@@ -232,13 +259,19 @@ def test_table1_stages_and_their_options():
         def __init__(self):
             self.calls, self.submitted = {}, []
 
-        def run(self, recipe, run_name, output, args, *, seed=None):
+        def run(self, recipe, run_name, output, args, *, seed=None, **scheduling):
             self.calls[run_name] = (recipe, list(args), seed)
             return Path("runs") / recipe / run_name
 
-        def submit(self, recipe, run_name, output, args, *, seed=None):
+        def submit(self, recipe, run_name, output, args, *, seed=None, **scheduling):
             self.submitted.append(run_name)
             return self.run(recipe, run_name, output, args, seed=seed)
+
+        def first_of(self, group, *args, **kwargs):
+            return self.run(*args, **kwargs)
+
+        def wait(self, directory):
+            return directory
 
     methods = [m for m in bench.METHODS if m != "expert"]  # the expert's stage reads the teacher's file
     cfg = parse_config(bench.Table1Config, ["--noise-levels", "0", "1e-3", "--noise-trials", "7", "--methods", *methods])

@@ -98,7 +98,7 @@ class FakeStages:
         self.root, self.scores, self.calls, self.printed = root, scores, [], []
         self.pipeline = type("Pipeline", (), {"dir": root, "print": lambda _, line: self.printed.append(line)})()
 
-    def run(self, recipe, run_name, output, args, *, seed=None):
+    def run(self, recipe, run_name, output, args, *, seed=None, **scheduling):
         self.calls.append((recipe, run_name, list(args), seed))
         directory = self.root / recipe / run_name
         directory.mkdir(parents=True, exist_ok=True)
@@ -110,6 +110,12 @@ class FakeStages:
         return directory
 
     submit = run  # queued evaluations: recorded like the others
+
+    def first_of(self, group, *args, **kwargs):
+        return self.run(*args, **kwargs)
+
+    def wait(self, directory):
+        return directory
 
 
 def test_teacher_stage_keeps_the_candidate_that_folds_best_on_the_train_split(tmp_path):

@@ -40,8 +40,8 @@ def evaluation_parts(trials: int, chunk: int, *, num_envs: int = 2,
     a multiple of ``num_envs``), the last one shorter. None when it stays whole (``chunk`` 0, or not below
     ``trials``)."""
     if len(noise_levels) > 1:
-        return Parts(tuple(("--noise-levels", f"{level!r}") for level in noise_levels), merge_evaluations)
-    if not chunk or any(noise_levels):
+        return Parts(tuple(("--noise-levels", repr(float(level))) for level in noise_levels), merge_evaluations)
+    if not chunk or any(float(level) for level in noise_levels):
         return None
     chunk = -(-chunk // num_envs) * num_envs
     if chunk >= trials:

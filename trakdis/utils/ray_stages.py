@@ -192,6 +192,7 @@ class RayStages(Stages):
         self._tasks: dict[Path, _Task] = {}  # run directory -> its task, every stage submitted
         self._done: set[Path] = set()  # those collected (their time recorded, or their failure)
         self.failures: dict[str, str] = {}  # stage -> what went wrong, one line each
+        self._firsts: dict[str, Path] = {}  # group -> the first stage of it (first_of)
         resources = self.ray.cluster_resources()
         run.print(f"stages as Ray tasks on {int(resources.get('CPU', 0))} CPUs of {len(self.ray.nodes())} node(s)")
 
@@ -240,6 +241,9 @@ class RayStages(Stages):
                         part_argv = [*self.common_args(recipe, name, seed=seed, progress=False), *map(str, args),
                                      *map(str, extra)]
                         refs.append(self._submit(recipe, name, part_argv, cpus, needs)[0])
+                        part = self.directory(recipe, name)
+                        self._tasks[self._key(part)] = _Task(refs[-1], f"{recipe}/{name}",
+                                                             self.pipeline.dir / f"{name}.log", part)
                 whole = (str(self.recipes), recipe, argv, str((self.pipeline.dir / f"{run_name}.log").resolve()),
                          os.getcwd(), f"{recipe}/{run_name}")
                 merge = self.ray.remote(merge_parts).options(num_cpus=cpus, max_retries=0, name=f"{recipe}/{run_name}")
@@ -251,6 +255,16 @@ class RayStages(Stages):
         return directory
 
     submit = run
+
+    def first_of(self, group: str, recipe: str, run_name: str, output: str, args: list[str], **kwargs) -> Path:
+        """:meth:`run` after the first stage submitted in ``group`` (that one: as it is), e.g. the stages of one
+        task that would otherwise collect its dataset at once (a second collection of a dataset is refused)."""
+        with self._lock:
+            first = self._firsts.get(group)
+            after = [*kwargs.pop("after", ()), *([] if first is None else [first])]
+            directory = self.run(recipe, run_name, output, args, after=after, **kwargs)
+            self._firsts.setdefault(group, directory)
+            return directory
 
     def withdraw(self, run_name: str) -> bool:
         """Never: a submitted stage is Ray's to schedule."""

@@ -171,6 +171,12 @@ class Stages:
             common.append("--resume")  # an interrupted stage continues (a recipe without a checkpoint starts over)
         return common
 
+    def first_of(self, group: str, recipe: str, run_name: str, output: str, args: list[str], **kwargs) -> Path:
+        """:meth:`run` for a stage of ``group``: stages that would write one file at once if they ran side by side
+        (a dataset that the first of them collects). A scheduler that runs stages side by side runs every later
+        stage of the group after the first one; here the stages run in turn anyway."""
+        return self.run(recipe, run_name, output, args, **kwargs)
+
     def recipe(self, recipe: str) -> ModuleType:
         """The recipe script ``<recipes>/<recipe>.py`` imported as a module (once): its ``main``, its configuration."""
         if recipe not in self._modules:
