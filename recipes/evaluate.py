@@ -22,7 +22,7 @@ import pandas as pd
 
 from trakdis.envs import close_env, task_spec
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import episode_frames, grasp_report, run_episodes, summarize, summarize_grasps, write_summary_table
+from trakdis.evaluation import CollectorName, episode_frames, grasp_report, run_episodes, summarize, summarize_grasps, write_summary_table
 from trakdis.policies import load_policy
 from trakdis.utils.limits import MAX_HORIZON, MAX_PARAMS, cap_workers, check_option, check_options
 from trakdis.utils.run import Run, RunConfig
@@ -57,6 +57,9 @@ class EvaluateConfig(RunConfig):
     """environments stepped together (batched rollouts)"""
     parallel: bool = False
     """step them in subprocesses (ParallelEnv) instead of in turn (SerialEnv)"""
+    collector: CollectorName = "sync"
+    """one TorchRL Collector over those envs, a MultiSyncCollector of --num-envs processes, or a RayCollector of
+    --num-envs Ray actors (pip install -e ".[ray]"; the cluster of RAY_ADDRESS, else a local Ray)"""
     videos: int = 2
     """extra episodes recorded as videos (0: none)"""
     video_size: int = 192
@@ -114,7 +117,7 @@ def main(argv=None) -> pd.DataFrame:
         try:  # the same configurations for every noise level (and every policy evaluated with this seed)
             res = run_episodes(env, handle.make_policy(seed=cfg.seed), cfg.trials, max_steps=handle.horizon,
                                desc=f"sigma={sigma:g}", seed=cfg.seed, on_episode=on_episode,
-                               skip_batches=cfg.first_episode // num_envs)
+                               skip_batches=cfg.first_episode // num_envs, collector=cfg.collector)
         finally:
             close_env(env)
         for k in range(len(res.final_performance)):

@@ -3,6 +3,7 @@
     python recipes/pipeline.py                                   # ClothFold, default sizes
     python recipes/pipeline.py --task ClothFoldDiagonalUnpinned --name unpinned
     python recipes/pipeline.py --name cf --resume                # continue after a kill
+    python recipes/pipeline.py --name cf --ray                   # stages as Ray tasks on every core (docs/scaling.md)
 
 1. ``recipes/online_dt.py``: the expert dataset (on ClothFold, grasps closed within 1 cm for every stage:
    ``TaskDefaults.close_radius``) and the privileged teacher (by default offline, on states with 1 cm of
@@ -31,7 +32,8 @@ output file exists is skipped and an interrupted one is resumed, so ``--resume``
 pipeline. Extra options go to one stage with ``--teacher-args="..."``, ``--encoder-args="..."``,
 ``--student-args="..."`` (with ``=``: the value starts with ``--``); ``--mask-unseen-pickers`` goes to
 the teacher and encoder stages (the student inherits it from the teacher). Writes
-``<root>/pipeline/<name>/summary.md`` and ``summary.csv``.
+``<root>/pipeline/<name>/summary.md`` and ``summary.csv``. With ``--ray`` (or ``--ray-address``) every stage is a
+Ray task, run as soon as the stages it reads have (``trakdis.utils.ray_stages``): the same numbers.
 """
 from __future__ import annotations
 
@@ -43,20 +45,21 @@ from pathlib import Path
 import pandas as pd
 
 from trakdis.envs.specs import TaskName
-from trakdis.evaluation import write_summary_table
-from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, check_teacher_selection, encoder_stage_args,
-                            student_stage_args, teacher_candidates, teacher_stage, teacher_stage_args)
+from trakdis.evaluation import evaluation_parts, write_summary_table
+from trakdis.method import (ENCODER_ARGS, STUDENT_ARGS, TEACHER_ARGS, check_stage_args, check_teacher_selection,
+                            encoder_stage_args, student_stage_args, teacher_candidates, teacher_stage,
+                            teacher_stage_args)
 from trakdis.policies import load_policy
 from trakdis.utils.config import parse_config
 from trakdis.utils.limits import check_options
+from trakdis.utils.ray_stages import RayConfig, make_stages
 from trakdis.utils.run import Run, RunConfig
-from trakdis.utils.stages import Stages
 
 RECIPES = Path(__file__).resolve().parent
 
 
 @dataclass
-class PipelineConfig(RunConfig):
+class PipelineConfig(RayConfig, RunConfig):
     """The whole method on one task: teacher, encoder, student, and one evaluation table."""
 
     task: TaskName = "ClothFold"
@@ -97,32 +100,10 @@ class PipelineConfig(RunConfig):
         super().__post_init__()
 
 
-def check_stage_args(stages: Stages, cfg: PipelineConfig) -> None:
-    """Parse the encoder and student stages' arguments (``--encoder-args``, ``--student-args``) with their
-    recipes' configurations, before any stage runs: a bad option ends the pipeline at once, naming the flag
-    that carried it, instead of after the teacher's training. The stage's error itself is printed above."""
-    placeholder = stages.pipeline.dir / "not-yet-trained"  # stands for the files the earlier stages will write
-    for flag, recipe, config, args, presets in (
-            ("--encoder-args", "train_encoder", "TrainEncoderConfig",
-             encoder_stage_args(cfg.task, placeholder, cfg.encoder_args, parallel=cfg.parallel,
-                                mask_unseen_pickers=cfg.mask_unseen_pickers), None),
-            ("--student-args", "distill", "DistillConfig",
-             student_stage_args(cfg.task, placeholder, placeholder, cfg.student_args, parallel=cfg.parallel),
-             "PRESETS")):
-        module = stages.recipe(recipe)
-        try:
-            parse_config(getattr(module, config), args, presets=getattr(module, presets) if presets else None)
-        except SystemExit as err:
-            if err.code in (0, None):  # --help inside the arguments
-                raise
-            raise SystemExit(f"pipeline.py {flag}={getattr(cfg, flag[2:].replace('-', '_'))!r}: recipes/{recipe}.py "
-                             f"refuses these options (its error is above); nothing was run") from None
-
-
 def main(argv=None) -> pd.DataFrame:
     run = Run.start("pipeline", PipelineConfig, argv, description=__doc__)
     cfg, name = run.cfg, run.dir.name
-    stages = Stages(run, RECIPES)
+    stages = make_stages(run, RECIPES)
     mask = cfg.mask_unseen_pickers
     parallel = ["--parallel"] if cfg.parallel else []  # the evaluations
     teacher_args = teacher_stage_args(cfg.task, cfg.teacher_args, mask_unseen_pickers=mask)
@@ -130,24 +111,24 @@ def main(argv=None) -> pd.DataFrame:
     horizon = parse_config(online_dt.OnlineDTConfig, teacher_args, presets=online_dt.PRESETS).horizon
     check_stage_args(stages, cfg)  # the later stages' options now, not after the teacher's training
     evaluate = ["--task", cfg.task, "--horizon", str(horizon), "--trials", str(cfg.trials), "--videos", "0"]
-    directories, policies = {}, {"expert": "expert"}
+    directories, policies, parts = {}, {"expert": "expert"}, evaluation_parts(cfg.trials, cfg.eval_chunk)
     background = ("expert", "teacher") if cfg.background_evaluations else ()
     with stages.queued():  # submitted evaluations run in the background, in turn, beside the foreground stages
         if "expert" in background:  # from the start, on the core that the teacher's training leaves idle
             directories["expert"] = stages.submit("evaluate", f"{name}-eval-expert", "summary.csv",
-                                                  ["--policy", "expert", *evaluate])
+                                                  ["--policy", "expert", *evaluate], parts=parts)
         teacher, kept = teacher_stage(stages, f"{name}-teacher", teacher_args, seed=cfg.seed,
                                       candidates=teacher_candidates(cfg.task, cfg.teacher_candidates),
                                       select_episodes=cfg.teacher_select_episodes,
-                                      margin=cfg.teacher_select_margin, parallel=cfg.parallel)
+                                      margin=cfg.teacher_select_margin, parallel=cfg.parallel, group="data")
         chain = f"{name}-c{kept}" if kept else name  # the stages after the teacher, named after the kept candidate
         policies["teacher"] = str(teacher)
-        if load_policy(teacher).horizon != horizon:  # a resumed teacher stage with another --horizon
+        if load_policy(stages.wait(teacher)).horizon != horizon:  # a resumed teacher stage with another --horizon
             raise ValueError(f"{teacher / 'policy.pt'}: horizon {load_policy(teacher).horizon}, but the teacher's "
                              f"arguments give {horizon}; run the pipeline under another --name")
         if "teacher" in background:  # beside the encoder's and the student's training
             directories["teacher"] = stages.submit("evaluate", f"{chain}-eval-teacher", "summary.csv",
-                                                   ["--policy", policies["teacher"], *evaluate])
+                                                   ["--policy", policies["teacher"], *evaluate], parts=parts)
         encoder = stages.run("train_encoder", f"{chain}-encoder", "encoder.pt",
                              encoder_stage_args(cfg.task, teacher, cfg.encoder_args, parallel=cfg.parallel,
                                                 mask_unseen_pickers=mask))
@@ -158,7 +139,7 @@ def main(argv=None) -> pd.DataFrame:
             prefix = name if label == "expert" else chain
             if label not in directories or stages.withdraw(f"{prefix}-eval-{label}"):
                 directories[label] = stages.run("evaluate", f"{prefix}-eval-{label}", "summary.csv",
-                                                ["--policy", policy, *evaluate, *parallel])
+                                                ["--policy", policy, *evaluate, *parallel], parts=parts)
     rows = [{**pd.read_csv(directories[label] / "summary.csv").iloc[0].to_dict(), "policy": label}
             for label in policies]  # expert, teacher, student
     teacher_mean = rows[1]["mean"]

@@ -22,6 +22,7 @@ from typing import Any
 from trakdis.envs.task_defaults import task_defaults
 from trakdis.evaluation import pick_candidate, read_final_scores
 from trakdis.utils.checkpoint import atomic_write_bytes
+from trakdis.utils.config import parse_config
 from trakdis.utils.stages import Stages
 
 TEACHER_ARGS = "--train-state-noise 0.01 --state-scale-floor 0.02 --online-rounds 0"
@@ -165,3 +166,27 @@ def teacher_stage(stages: Stages, run_name: str, args: list[str], *, seed: int, 
               "margin": margin}
     atomic_write_bytes(stages.pipeline.dir / f"{run_name}-selection.json", json.dumps(record, indent=1).encode())
     return teachers[kept], kept
+
+
+def check_stage_args(stages: Stages, cfg: Any) -> None:
+    """Parse the encoder and student stages' arguments (``--encoder-args``, ``--student-args``) with their
+    recipes' configurations, before any stage runs: a bad option ends the pipeline at once, naming the flag
+    that carried it, instead of after the teacher's training. The stage's error itself is printed above. ``cfg``:
+    ``recipes/pipeline.py``'s configuration (``task``, ``encoder_args``, ``student_args``, ``parallel``,
+    ``mask_unseen_pickers``)."""
+    placeholder = stages.pipeline.dir / "not-yet-trained"  # stands for the files the earlier stages will write
+    for flag, recipe, config, args, presets in (
+            ("--encoder-args", "train_encoder", "TrainEncoderConfig",
+             encoder_stage_args(cfg.task, placeholder, cfg.encoder_args, parallel=cfg.parallel,
+                                mask_unseen_pickers=cfg.mask_unseen_pickers), None),
+            ("--student-args", "distill", "DistillConfig",
+             student_stage_args(cfg.task, placeholder, placeholder, cfg.student_args, parallel=cfg.parallel),
+             "PRESETS")):
+        module = stages.recipe(recipe)
+        try:
+            parse_config(getattr(module, config), args, presets=getattr(module, presets) if presets else None)
+        except SystemExit as err:
+            if err.code in (0, None):  # --help inside the arguments
+                raise
+            raise SystemExit(f"pipeline.py {flag}={getattr(cfg, flag[2:].replace('-', '_'))!r}: recipes/{recipe}.py "
+                             f"refuses these options (its error is above); nothing was run") from None

@@ -137,7 +137,7 @@ def test_collector_leaves_the_env_open_and_the_thread_count():
 
 def test_unknown_collector_is_refused():
     with pytest.raises(ValueError, match="collector must be one of"):
-        run_episodes(make(3), Counting(), 1, max_steps=3, desc=None, collector="ray")
+        run_episodes(make(3), Counting(), 1, max_steps=3, desc=None, collector="gpu_cluster")
 
 
 def test_worker_env_fns_rebuild_the_sub_envs_with_the_transforms():
@@ -215,3 +215,28 @@ def test_multi_sync_collector_plays_the_same_episodes_and_shuts_down():
         assert_same_episodes(single.episodes, multi, exact=exact)
         assert not multiprocessing.active_children()
         assert torch.get_num_threads() == threads
+
+
+def test_ray_collector_plays_the_same_episodes():
+    """--collector ray: a RayCollector of 2 Ray actors (a local 2-CPU Ray), each a Collector with its own ClothFold
+    env and copy of the policy: the single-process collector's episodes, value for value, with the envs reset
+    between batches (3 episodes on 2 envs: two batches)."""
+    ray = pytest.importorskip("ray")
+    from trakdis.envs import close_env
+    from trakdis.policies import load_policy
+
+    expert = load_policy("expert", task="ClothFold", horizon=3)
+    env = expert.make_env(num_envs=2, split="eval")
+    try:
+        single = run_episodes(env, expert.make_policy(seed=0), 3, max_steps=3, keep_episodes=True, desc=None, seed=5)
+    finally:
+        close_env(env)
+    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=100 * 2**20)
+    try:
+        env = expert.make_env(num_envs=2, split="eval")
+        res = run_episodes(env, expert.make_policy(seed=0), 3, max_steps=3, keep_episodes=True, desc=None, seed=5,
+                           collector="ray")
+    finally:
+        ray.shutdown()
+    assert res.num_envs == 2 and len(res.episodes) == 3
+    assert_same_episodes(single.episodes, res, exact=True)

@@ -7,6 +7,7 @@ where a cloth policy closes its grippers (:mod:`.grasps`)."""
 from .background import BackgroundEvaluation
 from .episodes import (
     COLLECTORS,
+    CollectorName,
     EpisodeResults,
     EpisodeStream,
     episode_frames,
@@ -36,6 +37,7 @@ from .expert_scores import (
 
 __all__ = [
     "COLLECTORS",
+    "CollectorName",
     "evaluation_parts",
     "merge_evaluations",
     "worker_env_fns",

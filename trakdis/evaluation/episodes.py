@@ -18,7 +18,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Literal, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -33,7 +33,7 @@ from trakdis.utils.checkpoint import atomic_write_bytes
 from trakdis.utils.progress import progress
 from trakdis.utils.video import side_by_side
 
-__all__ = ["COLLECTORS", "EpisodeResults", "EpisodeStream", "episode_frames", "episode_score", "markdown_table",
+__all__ = ["COLLECTORS", "CollectorName", "EpisodeResults", "EpisodeStream", "episode_frames", "episode_score", "markdown_table",
            "paired_difference", "pick_candidate", "race_survivors", "read_final_scores", "run_episodes",
            "split_episodes", "standard_error", "summarize", "worker_env_fns", "write_summary_table"]
 
@@ -169,8 +169,9 @@ def split_episodes(rollout: TensorDictBase) -> list[TensorDictBase]:
     return [flat[i, : int(ends[i]) + 1] for i in range(flat.shape[0])]
 
 
-COLLECTORS = ("sync", "multi_sync")
-"""How :func:`run_episodes` steps its environments (see its ``collector`` argument)."""
+CollectorName = Literal["sync", "multi_sync", "ray"]
+"""How :func:`run_episodes` steps its environments (see its ``collector`` argument); the recipes' ``--collector``"""
+COLLECTORS: tuple[str, ...] = CollectorName.__args__
 
 
 def _build_worker_env(create_env_fn, create_env_kwargs, transform):
@@ -237,6 +238,10 @@ def run_episodes(
       sub-environments (and transforms) the processes build (:func:`worker_env_fns`; ``env``
       itself is never started), or a sequence of env constructors. The processes are started for
       this call and shut down before it returns.
+    * ``"ray"``: a ``torchrl.collectors.distributed.RayCollector`` of ``N`` Ray actors (one CPU each), each a
+      ``Collector`` with one of those envs and a copy of the policy, on the Ray cluster this process is connected
+      to (``ray.init`` first, or ``RAY_ADDRESS``; else TorchRL starts a local Ray). The actors are started for this
+      call and stopped before it returns; Ray stays up. Needs ``pip install -e ".[ray]"``.
 
     Each collector batch holds ``N * max_steps`` frames: one episode per environment, from its
     start (a reset) to its first ``("next", "done")`` (:func:`split_episodes`; the steps after an
@@ -250,7 +255,7 @@ def run_episodes(
     gets the ``i``-th seed of TorchRL's chain in both cases), so that calls with the same seed play
     the same initial configurations, with either collector (common random numbers for comparing
     policies; exact resumption). Sampled actions and a policy's own noise are drawn per process
-    with ``"multi_sync"``, so only deterministic policies give the same episodes there.
+    with ``"multi_sync"`` and ``"ray"``, so only deterministic policies give the same episodes there.
 
     ``skip_batches`` (``"sync"`` only): start at the episodes of the batch ``skip_batches`` of a call with the same
     ``seed`` and envs, episode ``skip_batches * N`` on: each env draws that many initial configurations first
@@ -343,6 +348,24 @@ class EpisodeStream:
             self._coll = Collector(env, policy, frames_per_batch=self.num_envs * max_steps, total_frames=-1,
                                    exploration_type=self.exploration_type, use_buffers=False,
                                    auto_register_policy_transforms=False)
+        elif collector == "ray":
+            from torchrl.collectors.distributed import RayCollector  # imports ray: the optional extra
+
+            env_fns = worker_env_fns(env)
+            self.num_envs = len(env_fns)
+            # sync=True: a batch is one max_steps rollout of every actor, stacked [N, max_steps] as with "sync"
+            # total_frames: RayCollector stops at once on -1 (its loop runs while collected < total_frames)
+            self._coll = RayCollector(env_fns, policy, frames_per_batch=self.num_envs * max_steps, total_frames=2**62,
+                                      num_collectors=self.num_envs, sync=True, remote_configs={"num_cpus": 1},
+                                      exploration_type=self.exploration_type,  # it overrides collector_kwargs'
+                                      collector_kwargs={"use_buffers": False, "auto_register_policy_transforms": False})
+            if seed is not None:
+                try:
+                    self._coll.set_seed(seed)  # each actor's env in turn: TorchRL's seed chain, as SerialEnv's
+                    _reset_actors(self._coll, [True] * self.num_envs)  # the seeded first episodes
+                except BaseException:
+                    self.close()
+                    raise
         else:
             env_fns = worker_env_fns(env)
             self.num_envs = len(env_fns)
@@ -409,10 +432,19 @@ def _start_next_episodes(coll, batch: TensorDictBase, n_env: int, collector: str
         return
     if collector == "multi_sync":  # one env per process
         coll.reset(reset_idx=(~done).tolist())
+    elif collector == "ray":  # one env per actor
+        _reset_actors(coll, (~done).tolist())
     elif len(env.batch_size):
         coll.reset(index=(~done).reshape(env.batch_size))
     else:
         coll.reset()
+
+
+def _reset_actors(coll, which: Sequence[bool]) -> None:
+    """Reset the envs of a ``RayCollector``'s actors where ``which`` is True (one env per actor)."""
+    import ray
+
+    ray.get([actor.reset.remote() for actor, reset in zip(coll.remote_collectors, which) if reset])
 
 
 def write_summary_table(

@@ -30,7 +30,7 @@ import copy
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -42,7 +42,7 @@ from trakdis.utils.limits import cap_workers, check_option
 from trakdis.utils.phases import PhaseTimer, available_workers
 
 from .background import BackgroundEvaluation
-from .episodes import EpisodeResults, paired_difference, run_episodes, standard_error, summarize
+from .episodes import CollectorName, EpisodeResults, paired_difference, run_episodes, standard_error, summarize
 from .expert_scores import expert_score_key, expert_score_path, read_expert_scores, write_expert_scores
 
 __all__ = ["EvalConfig", "EvalProtocol", "RunEnvs", "compare_scores", "log_scores"]
@@ -106,7 +106,7 @@ class EvalProtocol:
     log_returns: bool = True
     """log and print the mean return beside the scores (:func:`log_scores` with ``returns``)"""
     collector: str = "sync"
-    """how :func:`~trakdis.evaluation.run_episodes` steps the envs (``"sync"`` or ``"multi_sync"``)"""
+    """how :func:`~trakdis.evaluation.run_episodes` steps the envs (``"sync"``, ``"multi_sync"`` or ``"ray"``)"""
     _pending: list = field(default_factory=list, init=False, repr=False, compare=False)
 
     def run(self, run: Any, handle: Any, env: Any, *, step: int, tag: str, prefix: str = "eval",
@@ -291,8 +291,9 @@ class EvalConfig:
     """envs stepped together, for evaluations and rollouts (default: the cores, at most 2)"""
     parallel: bool = True
     """step them in worker processes (ParallelEnv; --no-parallel: in turn, the same numbers)"""
-    collector: Literal["sync", "multi_sync"] = "sync"
-    """one TorchRL Collector over the batched env, or a MultiSyncCollector of --num-envs processes"""
+    collector: CollectorName = "sync"
+    """one TorchRL Collector over the batched env, a MultiSyncCollector of --num-envs processes, or a RayCollector
+    of --num-envs Ray actors (pip install -e ".[ray]"; the cluster of RAY_ADDRESS, else a local Ray)"""
 
     def __post_init__(self):  # while parsing (tyro), before the run directory exists
         check_option("eval_episodes", self.eval_episodes, ge=0, integer=True)
