@@ -1,5 +1,6 @@
-"""The recipes' update loops: log, checkpoint and --stop-after cadence, rounds of rollouts and updates, DAgger's
-mixture, epochs of minibatches and validation passes."""
+"""The recipes' update loops: log, checkpoint and --stop-after cadence, rounds of rollouts and updates (the selection's
+snapshots between them), an Online DT round's rollouts, DAgger's mixture, a buffer's batches, epochs of minibatches and
+validation passes, and the choice of the snapshot kept and its options."""
 from dataclasses import dataclass, field
 
 import pytest
@@ -8,8 +9,8 @@ from tensordict import TensorDict
 
 from quadratic_loss import Quadratic
 from trakdis.optim import Updater
-from trakdis.training import (SnapshotSelection, eval_batches, mixture_shares, run_updates, shuffled_batches, train_epoch,
-                              train_rounds, train_updates)
+from trakdis.training import (OnlineRollouts, SelectionConfig, SnapshotSelection, buffer_batches, eval_batches,
+                              mixture_shares, run_updates, shuffled_batches, train_epoch, train_rounds, train_updates)
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.run import Run, RunConfig, RunState
 
@@ -265,3 +266,84 @@ def test_snapshot_selection_rounds_and_episodes():
     assert lines == ["selection: the teacher after round 2 is kept (train-split scores by round: 0 0.010, 2 1.010, "
                      "4 0.510, 5 0.210)"]
     assert selection.summary() == {"selected_round": 2, "selection_scores": selection.means()}
+
+
+def test_rounds_score_the_selection_after_every_round_but_the_last_before_the_evaluation(tmp_path):
+    """train_rounds' selection: its after_round(r) after each round but the last, before evaluate(r) (every
+    eval_every rounds); the last round's snapshot is the selection's finish, the recipe's."""
+    run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "a", "--no-progress"])
+    updater = Updater(Quadratic(), optimizer="adam", lr=1e-2)
+    state = RunState(run, {"updates": 0, "rounds": 0}, step_key="updates", updater=updater)
+    calls = []
+
+    class Selection:
+        def after_round(self, r):
+            calls.append(("select", r))
+
+    assert train_rounds(run, updater, TensorDict, state=state, rounds=4, updates_per_round=1,
+                        roll_out=lambda r: ({}, ""), selection=Selection(), evaluate=lambda r: calls.append(("eval", r)),
+                        eval_every=2, loss_key="train/loss_q")
+    assert calls == [("select", 1), ("select", 2), ("eval", 2), ("select", 3)]
+
+
+def test_snapshot_selection_without_an_env_scores_nothing_and_keeps_the_last_round():
+    """on_episodes without an env (no selection episodes, or no rounds): inactive; it scores no snapshot, finish
+    keeps the last round's weights and logs nothing, and its record and summary are the empty ones."""
+    module = torch.nn.Linear(2, 1)
+    before = module.weight.clone()
+    state, lines = {"updates": 0}, []
+    handle = type("Handle", (), {"actor": module})()
+    selection = SnapshotSelection.on_episodes(None, handle, "protocol, never run", None, state, episodes=30, every=2)
+    assert not selection.active and selection.consider(0) is None
+    selection.after_round(2)
+    assert selection.finish(5, lines.append) == 5 and lines == [] and torch.equal(module.weight, before)
+    assert state["selection"] == {"scores": {}, "best": None, "state_dict": None}
+    assert selection.summary() == {"selected_round": None, "selection_scores": {}}
+    assert SnapshotSelection(module, lambda step: [0.0], {}).active
+
+
+def test_selection_config_checks_its_options_and_resolves_the_tasks_episodes():
+    from trakdis.envs import task_defaults
+
+    assert (SelectionConfig().select_episodes, SelectionConfig().select_every) == (0, 4)
+    for bad in ({"select_every": 0}, {"select_episodes": -1}, {"select_margin": -1.0}):
+        with pytest.raises(ValueError, match=f"--{next(iter(bad)).replace('_', '-')}"):
+            SelectionConfig(**bad)
+    assert SelectionConfig(select_episodes=None).resolved_select_episodes("ClothFoldDiagonalPinned") == \
+        task_defaults("ClothFoldDiagonalPinned").select_episodes
+    assert SelectionConfig(select_episodes=3).resolved_select_episodes("ClothFold") == 3
+
+
+def test_online_rollouts_round_by_round(monkeypatch):
+    """OnlineRollouts: round r plays online_rollouts with its arguments, reseeded with seed + 1000 (r + 1),
+    ``online/round`` = r + 1 beside the round's metrics."""
+    import trakdis.training as training
+
+    calls = []
+
+    def fake(env, handle, buffer, episodes, **kwargs):
+        calls.append((env, handle, buffer, episodes, kwargs))
+        return {"online/kept": episodes, **kwargs["extra"]}, "line"
+
+    monkeypatch.setattr(training, "online_rollouts", fake)
+    label = object()
+    roll_out = OnlineRollouts("env", "handle", "buffer", 3, horizon=6, seed=5, policy_seed=5, deterministic=False,
+                              add=False, collector="multi_sync", workers=2, label=label)
+    assert roll_out(0) == ({"online/kept": 3, "online/round": 1}, "line")
+    roll_out(2)
+    assert [c[4]["seed"] for c in calls] == [1005, 3005] and calls[1][4]["extra"] == {"online/round": 3}
+    assert calls[0][:4] == ("env", "handle", "buffer", 3)
+    assert {k: calls[0][4][k] for k in ("horizon", "policy_seed", "deterministic", "add", "collector", "workers",
+                                        "label", "phases")} == {
+        "horizon": 6, "policy_seed": 5, "deterministic": False, "add": False, "collector": "multi_sync", "workers": 2,
+        "label": label, "phases": None}
+
+
+def test_buffer_batches_sample_the_batch_size_on_the_device():
+    class Buffer:
+        def sample(self, n):
+            return TensorDict({"x": torch.arange(n)}, batch_size=[n])
+
+    sample = buffer_batches(Buffer(), 5, "cpu")
+    batch = sample()
+    assert batch.batch_size == (5,) and batch.device == torch.device("cpu") and torch.equal(batch["x"], torch.arange(5))

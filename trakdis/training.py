@@ -1,14 +1,15 @@
 """The update loops of the recipes: ``updater`` steps on sampled batches until a counter reaches
 its total, with the log, checkpoint and ``--stop-after`` cadence written once
 (:func:`train_updates`), rounds of rollouts and updates (Online DT, DAgger: :func:`train_rounds`),
-an Online DT round's rollouts into the replay buffer (:func:`online_rollouts`), a round's updates
-(:func:`run_updates`), the episodes each acting policy plays in a round of DAgger's mixture
-(:func:`mixture_shares`), one epoch's shuffled minibatches of a dataset (:func:`shuffled_batches`),
-one epoch of plain optimiser steps on them (:func:`train_epoch`) and a validation pass over a
-dataset in batches (:func:`eval_batches`), and the choice of a run's best snapshot on episodes
-the final evaluation never plays (:class:`SnapshotSelection`).
+an Online DT round's rollouts into the replay buffer (:func:`online_rollouts`; round by round:
+:class:`OnlineRollouts`), a round's updates (:func:`run_updates`), the episodes each acting policy plays
+in a round of DAgger's mixture (:func:`mixture_shares`), a replay buffer's batches (:func:`buffer_batches`),
+one epoch's shuffled minibatches of a dataset (:func:`shuffled_batches`), one epoch of plain optimiser
+steps on them (:func:`train_epoch`) and a validation pass over a dataset in batches
+(:func:`eval_batches`), and the choice of a run's best snapshot on episodes the final evaluation never
+plays (:class:`SnapshotSelection`, its options :class:`SelectionConfig`).
 
-    done = train_updates(run, updater, lambda: buffer.sample(64), state=state, total=1500,
+    done = train_updates(run, updater, buffer_batches(buffer, 64), state=state, total=1500,
                          log_every=50, checkpoint_every=500)
     if not done:        # --stop-after: checkpoint written, continue with --resume
         return
@@ -17,6 +18,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
+from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Mapping, Sequence, TypeVar
 
 import numpy as np
@@ -24,14 +27,16 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from trakdis.envs import task_defaults
 from trakdis.evaluation import paired_difference, run_episodes
 from trakdis.optim import Updater, mean_metrics
+from trakdis.utils.limits import check_options
 from trakdis.utils.phases import PhaseTimer
 from trakdis.utils.progress import progress
 from trakdis.utils.run import Run, RunState
 
-__all__ = ["SnapshotSelection", "eval_batches", "mixture_shares", "online_rollouts", "run_updates", "shuffled_batches",
-           "train_epoch", "train_rounds", "train_updates"]
+__all__ = ["OnlineRollouts", "SelectionConfig", "SnapshotSelection", "buffer_batches", "eval_batches", "mixture_shares",
+           "online_rollouts", "run_updates", "shuffled_batches", "train_epoch", "train_rounds", "train_updates"]
 
 T = TypeVar("T")
 
@@ -73,10 +78,10 @@ def train_updates(run: Run, updater: Updater, sample: Callable[[], TensorDictBas
 
 def train_rounds(run: Run, updater: Updater, sample: Callable[[], TensorDictBase], *, state: RunState, rounds: int,
                  updates_per_round: int, roll_out: Callable[[int], tuple[Mapping[str, Any], str]],
-                 model: nn.Module | None = None, evaluate: Callable[[int], Any] | None = None, eval_every: int = 0,
-                 phases: PhaseTimer | None = None, phase: str = "updates", log_extra: Mapping[str, Any] | None = None,
-                 loss_key: str = "train/loss", key: str = "rounds", step_key: str = "updates",
-                 stop_key: str | None = None) -> bool:
+                 model: nn.Module | None = None, selection: SnapshotSelection | None = None,
+                 evaluate: Callable[[int], Any] | None = None, eval_every: int = 0, phases: PhaseTimer | None = None,
+                 phase: str = "updates", log_extra: Mapping[str, Any] | None = None, loss_key: str = "train/loss",
+                 key: str = "rounds", step_key: str = "updates", stop_key: str | None = None) -> bool:
     """Rounds of (roll out, update), as Online DT's fine-tuning and DAgger's distillation run them,
     until ``state[key]`` reaches ``rounds``.
 
@@ -85,9 +90,10 @@ def train_rounds(run: Run, updater: Updater, sample: Callable[[], TensorDictBase
     be empty); then ``updates_per_round`` steps of ``updater`` (``model`` in train mode; the phase
     ``phase`` of ``phases`` when given) advance ``state[step_key]``. Each round logs one row at
     ``state[step_key]`` (the updates' mean ``train/*``, ``log_extra``, then ``metrics``) and prints
-    ``"round <r+1>/<rounds>: <line>, <loss_key's name> <value>"``; ``evaluate(r + 1)`` follows every
-    ``eval_every`` rounds but the last. A checkpoint after every round; ``--stop-after`` counts
-    ``state[stop_key]`` (default ``key``). Returns False when it stopped the run, True once ``rounds``
+    ``"round <r+1>/<rounds>: <line>, <loss_key's name> <value>"``; after every round but the last,
+    ``selection.after_round(r + 1)`` (a :class:`SnapshotSelection`'s snapshot every ``selection.every``
+    rounds), then ``evaluate(r + 1)`` every ``eval_every`` rounds. A checkpoint after every round;
+    ``--stop-after`` counts ``state[stop_key]`` (default ``key``). Returns False when it stopped the run, True once ``rounds``
     are done."""
     stop_key = key if stop_key is None else stop_key
     while state[key] < rounds:
@@ -101,6 +107,8 @@ def train_rounds(run: Run, updater: Updater, sample: Callable[[], TensorDictBase
         run.log(state[step_key], {**train, **(log_extra or {}), **metrics})
         run.print(f"round {state[key]}/{rounds}: " + ", ".join(
             [*([line] if line else []), f"{loss_key.split('/')[-1]} {run.logger.last(loss_key):.4f}"]))
+        if selection is not None and state[key] < rounds:
+            selection.after_round(state[key])
         if evaluate is not None and eval_every and state[key] % eval_every == 0 and state[key] < rounds:
             evaluate(state[key])
         total = rounds if stop_key == key else state[stop_key] + (rounds - state[key]) * updates_per_round
@@ -135,6 +143,44 @@ def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizo
                f"{prefix}/kept": kept, f"{prefix}/buffer_online_fraction": buffer.online_fraction}
     return metrics, (f"rollout normalized performance {score:.3f}, return {ret:.3f} ({kept} kept; buffer "
                      f"{buffer.online_fraction:.0%} online; {res.rate()})")
+
+
+@dataclass
+class OnlineRollouts:
+    """A :func:`train_rounds` ``roll_out`` of Online DT (and of its DAgger variant, ``label``): round ``r``
+    plays :func:`online_rollouts` of ``handle`` in ``env`` into ``buffer`` with these arguments, the
+    episodes' configurations reseeded with ``seed + 1000 (r + 1)`` (each round's its own, the same on
+    every run of this seed) and ``online/round`` = ``r + 1`` logged beside the round's metrics."""
+
+    env: Any
+    handle: Any
+    buffer: Any
+    episodes: int
+    horizon: int
+    seed: int
+    policy_seed: int | None = None
+    deterministic: bool = True
+    add: bool = True
+    collector: str = "sync"
+    phases: PhaseTimer | None = None
+    workers: int = 1
+    label: Callable[[TensorDictBase], TensorDictBase] | None = None
+
+    def __call__(self, r: int) -> tuple[dict[str, Any], str]:
+        return online_rollouts(self.env, self.handle, self.buffer, self.episodes, horizon=self.horizon,
+                               seed=self.seed + 1000 * (r + 1), policy_seed=self.policy_seed,
+                               deterministic=self.deterministic, add=self.add, collector=self.collector,
+                               phases=self.phases, workers=self.workers, extra={"online/round": r + 1}, label=self.label)
+
+
+def buffer_batches(buffer: Any, batch_size: int, device: str | torch.device = "cpu") -> Callable[[], TensorDictBase]:
+    """The ``sample`` of :func:`train_updates` and :func:`train_rounds`: each call draws ``batch_size``
+    windows from ``buffer`` (``buffer.sample``) and moves them to ``device``."""
+    return functools.partial(_sample_batch, buffer, batch_size, device)
+
+
+def _sample_batch(buffer: Any, batch_size: int, device: str | torch.device) -> TensorDictBase:
+    return buffer.sample(batch_size).to(device)
 
 
 def run_updates(updater: Updater, sample: Callable[[], TensorDictBase], updates: int, *,
@@ -219,11 +265,15 @@ class SnapshotSelection:
 
         selection = SnapshotSelection.on_episodes(run, handle, evals, train_env, state, episodes=30, every=4)
         selection.consider(0)            # before the first round
-        ...                              # after round r: selection.after_round(r)
+        ...                              # after round r: selection.after_round(r) (train_rounds' selection)
         kept = selection.finish(rounds, run.print)
+
+    ``score`` None: a selection with nothing to score (:attr:`active` False; :meth:`on_episodes` without an
+    env): it considers no snapshot and :meth:`finish` keeps the last round's weights; its record is made all
+    the same, so a run's state and :meth:`summary` do not depend on it.
     """
 
-    def __init__(self, module: nn.Module, score: Callable[[int], Sequence[float]], state: dict, *,
+    def __init__(self, module: nn.Module, score: Callable[[int], Sequence[float]] | None, state: dict, *,
                  margin: float = 1.0, every: int = 1, name: str = "snapshot", key: str = "selection"):
         if every < 1:
             raise ValueError(f"every must be >= 1 (rounds between the scored snapshots), got {every}")
@@ -238,9 +288,12 @@ class SnapshotSelection:
         """Score ``handle`` (a :class:`~trakdis.policies.PolicyHandle` acting with ``module``, default its
         actor) on ``episodes`` episodes of ``env`` (configurations of ``split`` that the final evaluation never
         plays) with ``protocol`` (an :class:`~trakdis.evaluation.EvalProtocol`) reseeded ``seed_offset`` past its
-        own seed, the same episodes for every snapshot; each logged as ``selection/`` at ``state[step_key]``."""
-        picks = dataclasses.replace(protocol, episodes=episodes, seed=protocol.seed + seed_offset)
+        own seed, the same episodes for every snapshot; each logged as ``selection/`` at ``state[step_key]``.
+        ``env`` None (no selection episodes, or no rounds): an inactive selection (see the class)."""
         module = handle.actor if module is None else module
+        if env is None:
+            return cls(module, None, state, margin=margin, every=every, name=name)
+        picks = dataclasses.replace(protocol, episodes=episodes, seed=protocol.seed + seed_offset)
 
         def score(r: int) -> Sequence[float]:
             return picks.run(run, handle, env, step=state[step_key], tag=f"selection: {name} after round {r}",
@@ -251,13 +304,20 @@ class SnapshotSelection:
     def record(self) -> dict:
         return self.state[self.key]
 
+    @property
+    def active(self) -> bool:
+        """Whether there is anything to score the snapshots with."""
+        return self.score is not None
+
     def means(self) -> dict[int, float]:
         """The mean score of every snapshot considered, by step."""
         return {step: float(np.mean(s)) for step, s in self.record["scores"].items()}
 
-    def consider(self, step: int) -> float:
+    def consider(self, step: int) -> float | None:
         """Score the module's weights at ``step`` (once per step), keep them if they beat the kept
-        snapshot (see the class); returns their mean score."""
+        snapshot (see the class); returns their mean score (None: an inactive selection)."""
+        if not self.active:
+            return None
         rec = self.record
         if step not in rec["scores"]:
             rec["scores"][step] = [float(x) for x in np.asarray(self.score(step), dtype=np.float64).reshape(-1)]
@@ -284,7 +344,9 @@ class SnapshotSelection:
 
     def finish(self, rounds: int, log: Callable[[str], None] = print) -> int | None:
         """Score the snapshot after the last round (``rounds``), restore the kept one and log which; returns its
-        round."""
+        round (an inactive selection: ``rounds``, the weights as they are)."""
+        if not self.active:
+            return rounds
         self.consider(rounds)
         kept = self.restore()
         log(f"selection: the {self.name} after round {kept} is kept (train-split scores by round: "
@@ -294,3 +356,29 @@ class SnapshotSelection:
     def summary(self) -> dict:
         """``selected_round`` and ``selection_scores`` (mean by round), for a saved policy's extras."""
         return {"selected_round": self.record["best"], "selection_scores": self.means()}
+
+
+@dataclass
+class SelectionConfig:
+    """The early-stopping options of a recipe with rounds (a base of its config dataclass, so the flags
+    stay ``--select-episodes``, ``--select-every``, ``--select-margin``; a recipe redeclares a field to
+    change its default): the episodes, cadence and margin of its :class:`SnapshotSelection`
+    (:meth:`SnapshotSelection.on_episodes`)."""
+
+    select_episodes: int = 0
+    """early stopping: train-split episodes that the run's starting point and its snapshot every --select-every
+    rounds (and after the last) play; the one kept beats the earlier ones by --select-margin standard errors
+    (0: the last)"""
+    select_every: int = 4  # rounds between the snapshots --select-episodes compares
+    select_margin: float = 1.0  # standard errors of the paired difference a later snapshot must win by
+
+    def __post_init__(self):  # while parsing (tyro), before the run directory exists
+        check_options(self, sizes=("select_every",), counts=("select_episodes",), nonnegative=("select_margin",))
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
+
+    def resolved_select_episodes(self, task: str) -> int:
+        """``--select-episodes``, or where a recipe lets it be unset (None), the task's
+        ``TaskDefaults.select_episodes``."""
+        return task_defaults(task).select_episodes if self.select_episodes is None else self.select_episodes
