@@ -386,3 +386,54 @@ def test_expert_versions_are_per_task(tmp_path):
         with pytest.raises(DatasetError, match=rf"{old.name}.*version 2 of the {task} scripted expert.*version "
                                                rf"{expert_version(task)}"):
             ensure_dataset(cfg, task=task, horizon=100, seed=0, pixels=True)
+
+
+def test_state_buffer_config_makes_the_teachers_buffer_with_its_options(monkeypatch):
+    """StateBufferConfig (online_dt.py's --state-scale-floor, --train-state-noise, ...): offline_state_buffer with
+    these options, the task's out-of-view fill with --mask-unseen-pickers; its checks while parsing."""
+    import trakdis.data.loading as loading
+    from trakdis.data import StateBufferConfig
+    from trakdis.transforms import OutOfViewFill
+
+    calls = []
+    monkeypatch.setattr(loading, "offline_state_buffer", lambda state, data, **kwargs: calls.append((state, data, kwargs)))
+    cfg = StateBufferConfig(state_scale_floor=0.02, train_state_noise=0.01, mask_unseen_pickers=True, rtg_scale=2.0,
+                            buffer_replacement="oldest", early_windows=False)
+    cfg.state_buffer("state", "data", phases="phases", task="ClothFold", horizon=6, seed=3, context_len=4,
+                     target_key="expert_action", extra_capacity=5, collect_pixels=True, progress=False)
+    (state, data, kwargs), = calls
+    fill = kwargs.pop("fill")
+    assert (state, data) == ("state", "data") and isinstance(fill, OutOfViewFill)
+    assert fill.starts == OutOfViewFill.for_task("ClothFold").starts
+    assert {k: v for k, v in kwargs.items() if k != "log"} == {
+        "phases": "phases", "task": "ClothFold", "horizon": 6, "seed": 3, "context_len": 4, "rtg_scale": 2.0,
+        "min_scale": 0.02, "state_noise": 0.01, "early_windows": False, "replacement": "oldest", "collect_pixels": True,
+        "progress": False, "target_key": "expert_action", "extra_capacity": 5}
+    StateBufferConfig().state_buffer("state", "data", phases=None, task="ClothFold", horizon=6, seed=3, context_len=4)
+    assert calls[1][2]["fill"] is None and calls[1][2]["target_key"] is None
+    assert StateBufferConfig.SAVED_AS == {"state_noise": "train_state_noise"}  # the option's earlier name
+    for bad in ({"buffer_capacity": 0}, {"rtg_scale": 0.0}, {"state_scale_floor": 0.0}, {"train_state_noise": -1.0}):
+        with pytest.raises(ValueError, match=f"--{next(iter(bad)).replace('_', '-')}"):
+            StateBufferConfig(**bad)
+
+
+def test_encoder_data_config_loads_the_train_val_steps_with_its_options(monkeypatch):
+    import trakdis.data.loading as loading
+    from trakdis.data import EncoderDataConfig
+
+    calls = []
+
+    def load(data, **kwargs):
+        calls.append((data, kwargs))
+        return "steps"
+
+    monkeypatch.setattr(loading, "load_train_val_steps", load)
+    cfg = EncoderDataConfig(extra_noise=(0.4,), extra_aim_error=(0.03,), extra_seeds=(1,), extra_data=("d",),
+                            val_fraction=0.3)
+    assert cfg.train_val_steps("data", task="ClothFold", horizon=6, seed=2, keys=("pixels", "state"), image_size=16,
+                               progress=False) == "steps"
+    (data, kwargs), = calls
+    assert data == "data" and {k: v for k, v in kwargs.items() if k != "log"} == {
+        "task": "ClothFold", "horizon": 6, "seed": 2, "keys": ("pixels", "state"), "val_fraction": 0.3,
+        "image_size": 16, "extra_noise": (0.4,), "extra_aim_error": (0.03,), "extra_seeds": (1,), "extra_data": ("d",),
+        "progress": False}

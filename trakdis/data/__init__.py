@@ -5,7 +5,8 @@
 * :mod:`.labels`: the actions a policy learns (recorded, or the scripted expert's noise-free ones);
 * :mod:`.buffer`: ``TrajectoryReplayBuffer`` (left-padded windows, hindsight return-to-go);
 * :mod:`.loading`: the recipes' ``--data.*`` section, finding or collecting a dataset, loading it,
-  making a buffer.
+  making a buffer (a teacher's buffer of states and its options: ``StateBufferConfig``; an encoder's training
+  and validation steps and theirs: ``EncoderDataConfig``).
 """
 
 # The GL backend for pixel collection is chosen by ``trakdis/__init__.py`` (imported before this
@@ -23,9 +24,9 @@ from .dataset import (
 from .labels import ACTION_LABELS, ActionLabels, expert_labels, expert_targets
 from .layout import (ACTING_KEYS, REQUIRED_KEYS, STEP_KEYS, encode_trajectories, episode_to_trajectory, real_steps,
                      split_episodes_train_val, valid_mask)
-from .loading import (DataConfig, TrainValSteps, default_dataset_path, ensure_dataset, ensure_dataset_timed,
+from .loading import (DataConfig, EncoderDataConfig, TrainValSteps, default_dataset_path, ensure_dataset, ensure_dataset_timed,
                       load_encoded_dataset, load_offline_data, load_train_val_steps, load_trajectories, make_buffer,
-                      offline_state_buffer, student_buffer)
+                      offline_state_buffer, StateBufferConfig, student_buffer)
 
 __all__ = [
     "DATASET_FORMAT",
@@ -50,6 +51,7 @@ __all__ = [
     "split_episodes_train_val",
     "valid_mask",
     "DataConfig",
+    "EncoderDataConfig",
     "TrainValSteps",
     "default_dataset_path",
     "ensure_dataset",
@@ -60,5 +62,6 @@ __all__ = [
     "load_trajectories",
     "make_buffer",
     "offline_state_buffer",
+    "StateBufferConfig",
     "student_buffer",
 ]

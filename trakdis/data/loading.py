@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, NamedTuple, Optional, Sequence
+from typing import Callable, ClassVar, Literal, NamedTuple, Optional, Sequence
 
 import torch
 from tensordict import TensorDict
@@ -28,9 +28,9 @@ from .dataset import (DatasetError, collect_expert_dataset, collected_close_radi
 from .labels import ACTION_LABELS, ActionLabels, expert_labels
 from .layout import encode_trajectories, real_steps, split_episodes_train_val, valid_mask
 
-__all__ = ["DataConfig", "TrainValSteps", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed",
+__all__ = ["DataConfig", "EncoderDataConfig", "TrainValSteps", "default_dataset_path", "ensure_dataset", "ensure_dataset_timed",
            "load_encoded_dataset", "load_offline_data", "load_train_val_steps", "load_trajectories", "make_buffer",
-           "offline_state_buffer", "student_buffer"]
+           "offline_state_buffer", "StateBufferConfig", "student_buffer"]
 
 
 @dataclass
@@ -296,6 +296,34 @@ def load_train_val_steps(cfg: DataConfig, *, task: str, horizon: int, seed: int,
     return TrainValSteps(path, train, val, train_episodes, val_episodes)
 
 
+@dataclass
+class EncoderDataConfig:
+    """The steps an encoder trains and validates on, beside the main dataset's options (``--data.*``; a base of
+    ``train_encoder.py``'s config dataclass, so the flags stay ``--val-fraction``, ``--extra-noise``, ...): the
+    episodes held out for validation and the extra datasets whose steps join the training ones
+    (:func:`load_train_val_steps`)."""
+
+    extra_noise: tuple[float, ...] = ()
+    """also train on datasets of the same size collected with these expert movement noises"""
+    extra_aim_error: tuple[float, ...] = ()
+    """also train on datasets of the same size whose expert aims at source corners misplaced by these stds (m):
+    images of missed grasps, labelled with the true state (the main dataset's movement noise)"""
+    extra_seeds: tuple[int, ...] = ()
+    """also train on datasets like the main one (its size and movement noise) collected with these seeds (default
+    paths ..._seed<k>...; collected if missing): more episodes of the same expert"""
+    extra_data: tuple[str, ...] = ()
+    """also train on these existing datasets of the task (directories with images), e.g. more expert episodes"""
+    val_fraction: float = 0.1  # fraction of the episodes held out for validation
+
+    def train_val_steps(self, data: DataConfig, *, task: str, horizon: int, seed: int, keys: Sequence[str],
+                        image_size: int = 32, log: Callable[..., None] = print, progress: bool = True) -> TrainValSteps:
+        """:func:`load_train_val_steps` of the dataset ``data`` with these options; the other arguments are its own."""
+        return load_train_val_steps(data, task=task, horizon=horizon, seed=seed, keys=keys, val_fraction=self.val_fraction,
+                                    image_size=image_size, extra_noise=self.extra_noise,
+                                    extra_aim_error=self.extra_aim_error, extra_seeds=self.extra_seeds,
+                                    extra_data=self.extra_data, log=log, progress=progress)
+
+
 def _check_not_the_same_episodes(main: Path, main_config: dict, extra: Path) -> None:
     """A :class:`~trakdis.data.DatasetError` if the extra dataset ``extra`` is the main one, or was collected by the
     scripted expert exactly as it was (``main_config``, the main dataset's collection config: same seed, noise,
@@ -365,6 +393,44 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
     if not state.resuming:
         buffer.load_offline(trajectories, lengths)
     return buffer, normalizer
+
+
+@dataclass
+class StateBufferConfig:
+    """The options of a teacher's replay buffer of standardised states (:func:`offline_state_buffer`; a base of
+    ``online_dt.py``'s config dataclass, so the flags stay ``--state-scale-floor``, ``--train-state-noise``,
+    ...): what the Decision Transformer reads and which trajectories the buffer keeps."""
+
+    state_scale_floor: float = 1e-3  # lower bound (metres) of the state normaliser's per-dimension scale
+    train_state_noise: float = 0.0
+    """std (m) of Gaussian noise on the training windows' true states (acting: exact)"""
+    mask_unseen_pickers: bool = False  # train and act with a picker out of the 32x32 camera view as a fixed sentinel
+    rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)
+    buffer_capacity: Optional[int] = None  # trajectories in the replay buffer (default: the dataset's; DAgger: +rollouts)
+    buffer_replacement: Literal["oldest", "lowest_return"] = "lowest_return"
+    """which trajectory a rollout replaces in a full buffer: the lowest-return one if it beats it, or the oldest"""
+    early_windows: bool = True  # also sample windows that begin before an episode's first step (DT/ODT reference: no)
+    SAVED_AS: ClassVar[dict] = {"state_noise": "train_state_noise"}  # the option's earlier name (--state-noise)
+
+    def __post_init__(self):  # while parsing (tyro), before the run directory exists
+        check_options(self, sizes=("buffer_capacity",), positive=("rtg_scale", "state_scale_floor"),
+                      nonnegative=("train_state_noise",))
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
+
+    def state_buffer(self, state: RunState, data: DataConfig, *, phases: PhaseTimer, task: str, horizon: int,
+                     seed: int, context_len: int, target_key: str | None = None, extra_capacity: int = 0,
+                     collect_pixels: bool = False, log: Callable[..., None] = print,
+                     progress: bool = True) -> tuple[TrajectoryReplayBuffer, ObservationNorm | Compose]:
+        """:func:`offline_state_buffer` of the dataset ``data`` with these options (``--mask-unseen-pickers``:
+        the task's :class:`~trakdis.transforms.OutOfViewFill`); the other arguments are its own."""
+        return offline_state_buffer(
+            state, data, phases=phases, task=task, horizon=horizon, seed=seed, context_len=context_len,
+            rtg_scale=self.rtg_scale, min_scale=self.state_scale_floor, state_noise=self.train_state_noise,
+            fill=OutOfViewFill.for_task(task) if self.mask_unseen_pickers else None, early_windows=self.early_windows,
+            replacement=self.buffer_replacement, collect_pixels=collect_pixels, log=log, progress=progress,
+            target_key=target_key, extra_capacity=extra_capacity)
 
 
 def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: float, *,
