@@ -6,27 +6,40 @@ of that weight copy: the states it visits, on which ``train_encoder.py --teacher
 (:func:`student_rollout_steps`), and its scores, by which ``train_encoder.py --select-episodes`` chooses among
 encoders (:func:`weight_copy_scores`, raced: :func:`weight_copy_race`).
 
+Its distillation (``distill.py``): the options of the student and of what it learns from, and the parts they
+make (:class:`StudentConfig`: the student, its loss, the expert data in its buffer, the policies that act in
+the rollouts), a round's rollouts of DAgger's mixture (:class:`DAggerRollouts`), the run's resume state
+(:func:`distill_state`) and its evaluations, the kept snapshot's included (:class:`StudentEvaluations`).
+
 Above :mod:`trakdis.evaluation` (it plays episodes) and :mod:`trakdis.policies` (it builds on loaded policies).
 """
 from __future__ import annotations
 
 import copy
+import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, ClassVar, Literal, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import nn
 
-from trakdis.envs import close_env, task_spec
+from trakdis.data import DataConfig, TrajectoryReplayBuffer, load_encoded_dataset
+from trakdis.envs import close_env, task_defaults, task_spec
 from trakdis.evaluation import EpisodeStream, episode_score, race_survivors, run_episodes
 from trakdis.modules import NormalizedEncoder, copy_teacher_weights, find_dt_actor, make_dt_actor
+from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
 from trakdis.policies import PolicyHandle, load_encoder, load_teacher
+from trakdis.training import SnapshotSelection, mixture_shares
+from trakdis.transforms import PickerOdometry
 from trakdis.transforms.normalization import normalizer_parts, normalizer_with_keys
 from trakdis.transforms.visibility import OutOfViewFill
 from trakdis.utils import limits
+from trakdis.utils.limits import check_options
 from trakdis.utils.logger import latest_run_file
+from trakdis.utils.run import Run, RunState
 
 __all__ = [
     "weight_copied_student",
@@ -35,6 +48,10 @@ __all__ = [
     "student_rollout_steps",
     "weight_copy_scores",
     "weight_copy_race",
+    "StudentConfig",
+    "DAggerRollouts",
+    "StudentEvaluations",
+    "distill_state",
 ]
 
 
@@ -198,3 +215,238 @@ def _weight_copy_episodes(teacher: PolicyHandle, encoder: nn.Module, *, episodes
                             seed=seed, desc=desc)
     finally:
         close_env(env)
+
+
+# --------------------------------------------------------------------------- distillation (distill.py)
+@dataclass
+class StudentConfig:
+    """The student and what it learns from (a base of ``distill.py``'s config dataclass, so the flags stay
+    ``--weight-copy``, ``--distill``, ``--act``, ...): its starting point and inputs, its labels (the
+    teacher's, or with ``--no-distill`` the expert data's own actions), its data (the expert dataset
+    through the encoder, the rollouts of ``--act``'s policies) and its loss."""
+
+    weight_copy: bool = True
+    """initialise the student with the teacher's weights (--no-weight-copy: fresh weights, never kept by the
+    selection; No-Pretrain, with --no-distill the paper's No-Distill)"""
+    distill: bool = True  # learn from the teacher's actions (--no-distill: imitate the expert dataset instead)
+    estimate_noise: float = 0.0
+    """std of Gaussian noise on the estimated state of every training window (robustness)"""
+    SAVED_AS: ClassVar[dict] = {"state_noise": "estimate_noise"}  # the option's earlier name (--state-noise)
+    proprio_pickers: bool = False  # the student's picker positions from proprioception (the true state), not the encoder
+    picker_odometry: Literal["auto", "on", "off"] = "auto"
+    """the encoder's picker estimates fused with the student's own commands (no proprioception); auto: on if the data's
+    actions are the executed ones (measured on the three tasks over 3 seeds each: docs/recipes/distill.md)"""
+    act: Literal["student", "teacher", "mixed"] = "teacher"  # who acts in the rollouts (student: DAgger; mixed: decaying)
+    teacher_context: Literal["window", "step"] = "window"  # what the teacher reads to label a step: window or step alone
+    expert_data: bool = True  # distil on the expert dataset's episodes (--data.*): images through the encoder
+    episodes_per_round: int = 0  # episodes rolled out per round into the distillation data (0: the expert data only)
+    loss_function: Literal["nll", "mse"] = "nll"  # the student's NLL of the teacher's action (paper), or squared error
+    return_to_go: Literal["acting", "hindsight"] = "acting"  # rollouts' return-to-go: the acting countdown, or reached
+    kl_coef: float = 0.0  # weight of an extra teacher-student KL term (0: the paper's NLL only)
+    expert_coef: Optional[float] = None
+    """weight of the student's NLL of the expert's own actions beside the teacher's, on the expert data (knowledge
+    distillation's hard labels; 0: the paper's loss, the teacher's actions alone; default: per task, as measured in
+    docs/recipes/distill.md; 0 wherever the data has rollouts)"""
+    data: DataConfig = field(default_factory=DataConfig)  # expert dataset for --no-distill and --expert-data
+
+    def __post_init__(self):  # checked while parsing, before the run directory exists
+        if self.episodes_per_round < 0 or (self.distill and self.episodes_per_round == 0 and not self.expert_data):
+            raise ValueError(f"--episodes-per-round {self.episodes_per_round}: distillation needs rollouts (>= 1) "
+                             "or --expert-data")
+        if self.expert_coef is not None and not self.expert_coef >= 0:  # also NaN
+            raise ValueError(f"--expert-coef {self.expert_coef}: must be >= 0")
+        if self.expert_coef and not self.expert_actions:
+            raise ValueError(f"--expert-coef {self.expert_coef}: the expert's actions exist on the expert data alone "
+                             "(--expert-data, --episodes-per-round 0, with distillation)")
+        if self.picker_odometry == "on" and not self.proprio_pickers and self.data.action_labels != "executed":
+            raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
+                             f"{self.data.action_labels!r} needs 'executed'")
+        check_options(self, nonnegative=("estimate_noise", "kl_coef"))
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
+
+    @property
+    def odometry(self) -> bool:
+        """Whether the student's pickers are fused with its commands: --picker-odometry, auto resolved to on where the
+        data's actions are the executed ones; never with --proprio-pickers (they give the pickers outright)."""
+        auto = self.picker_odometry == "auto" and self.data.action_labels == "executed"
+        return (self.picker_odometry == "on" or auto) and not self.proprio_pickers
+
+    @property
+    def expert_actions(self) -> bool:
+        """Whether every distillation window holds the expert's own actions (the expert data, no rollouts)."""
+        return self.distill and self.expert_data and self.episodes_per_round == 0
+
+    @property
+    def relabel_return_to_go(self) -> bool:
+        """Whether the buffer recomputes the return-to-go of the episodes it stores from their rewards (hindsight):
+        the expert data's (with --no-distill or --expert-data) and, with --return-to-go hindsight, the rollouts'."""
+        return not self.distill or self.expert_data or self.return_to_go == "hindsight"
+
+    def resolved_expert_coef(self, task: str) -> float:
+        """``--expert-coef``, or unset the task's ``TaskDefaults.expert_coef`` where the windows hold the expert's
+        own actions (else 0)."""
+        if self.expert_coef is not None:
+            return self.expert_coef
+        return task_defaults(task).expert_coef if self.expert_actions else 0.0
+
+    def proprio_dims(self, task: str) -> tuple[int, ...]:
+        """The state dims the student reads from proprioception, the true state (``--proprio-pickers``: the
+        pickers'; else none)."""
+        pickers = task_spec(task).state_groups["pickers"]
+        return tuple(range(pickers.start, pickers.stop)) if self.proprio_pickers else ()
+
+    def make_student(self, teacher: PolicyHandle, encoder: nn.Module, *, device: str = "cpu") -> tuple[PolicyHandle, Any]:
+        """:func:`weight_copied_student` of ``teacher`` on ``encoder``'s estimates with these options: the
+        teacher's weights (``--weight-copy``), its statistics standardising both the true ``"state"`` and the
+        ``"state_estimate"`` (the encoder's estimates live in state units), :meth:`proprio_dims` and
+        :attr:`odometry`."""
+        return weight_copied_student(teacher, encoder, weight_copy=self.weight_copy, device=device,
+                                     normalizer_keys=("state", "state_estimate"),
+                                     proprio_dims=self.proprio_dims(teacher.task), picker_odometry=self.odometry)
+
+    def make_loss(self, student: nn.Module, teacher_actor: nn.Module, *, action_eps: float,
+                  expert_coef: float = 0.0) -> nn.Module:
+        """The student's loss: :class:`~trakdis.objectives.DistillationLoss` of the frozen ``teacher_actor``'s
+        actions (``--loss-function``, ``--kl-coef``, ``--teacher-context``; ``expert_coef``: the weight of the
+        expert's own actions beside them), or with ``--no-distill`` :class:`~trakdis.objectives.MaskedOnlineDTLoss`
+        of the expert data's actions without the entropy bonus."""
+        if self.distill:
+            return DistillationLoss(student, teacher_actor, kl_coef=self.kl_coef, loss_function=self.loss_function,
+                                    action_eps=action_eps, teacher_context=self.teacher_context, expert_coef=expert_coef)
+        return MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=action_eps)
+
+    def load_expert_data(self, buffer: TrajectoryReplayBuffer, encoder: nn.Module, teacher: PolicyHandle, *, seed: int,
+                         log: Callable[[str], None] = print, progress: bool = True) -> None:
+        """With ``--no-distill`` (the expert's actions as targets) or ``--expert-data`` (the teacher's labels on
+        their true states): the expert dataset's episodes into ``buffer``, their images through the frozen
+        ``encoder`` (:func:`~trakdis.data.load_encoded_dataset`), with :attr:`odometry` its picker estimates fused
+        with the recorded actions, as the student reads them when acting. Otherwise nothing."""
+        if self.distill and not self.expert_data:
+            return
+        keys = ("action", "reward", *(("state",) if self.proprio_pickers or self.distill else ()))
+        data, lengths, path = load_encoded_dataset(self.data, encoder, task=teacher.task, horizon=teacher.horizon,
+                                                   seed=seed, keys=keys, log=log, progress=progress)
+        if self.odometry:  # what the student reads when acting: the fused pickers
+            fuse = PickerOdometry.for_task(teacher.task, teacher.env_kwargs)
+            data.set("state_estimate", fuse.filter(data["state_estimate"], data["action"]))
+        buffer.load_offline(data, lengths)
+        log(f"{'--expert-data' if self.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
+
+    def acting_policies(self, teacher: PolicyHandle, student: PolicyHandle, encoder: nn.Module) -> list[PolicyHandle]:
+        """The policies whose episodes a round rolls out (``--act``; none without distillation or rollouts): the
+        teacher, its rollouts carrying the encoder's estimate too (fused the student's way), the student, or both
+        (DAgger's decaying mixture: :class:`DAggerRollouts`)."""
+        if not (self.distill and self.episodes_per_round):
+            return []
+        estimating = dataclasses.replace(teacher, encoder=encoder, picker_odometry=self.odometry)
+        return {"teacher": [estimating], "student": [student], "mixed": [estimating, student]}[self.act]
+
+
+@dataclass
+class DAggerRollouts:
+    """A :func:`~trakdis.training.train_rounds` ``roll_out`` of distillation: round ``r`` plays ``episodes``
+    episodes (mean actions, train split) of each of ``handles`` in its env of ``envs``, reseeded with ``seed +
+    1000 (r + 1) + 100 i`` for the ``i``-th, and adds their true and estimated states, actions and
+    return-to-go to ``buffer``. ``mixed`` (two handles, the teacher's and the student's): DAgger's decaying
+    mixture, the round's episodes shared between them by :func:`~trakdis.training.mixture_shares` over
+    ``rounds``. Logs ``rollout/<kind>_normalized_performance`` of each and ``round`` = ``r + 1``."""
+
+    handles: Sequence[PolicyHandle]
+    envs: Sequence[Any]
+    buffer: TrajectoryReplayBuffer
+    episodes: int
+    rounds: int
+    horizon: int
+    seed: int
+    collector: str = "sync"
+    mixed: bool = False
+
+    def __call__(self, r: int) -> tuple[dict[str, Any], str]:
+        metrics, parts = {}, []
+        shares = mixture_shares(self.episodes, r, self.rounds) if self.mixed else [self.episodes]
+        for i, (handle, n) in enumerate(zip(self.handles, shares)):
+            if n > 0:
+                res = run_episodes(self.envs[i], handle.make_policy(), n, max_steps=self.horizon, deterministic=True,
+                                   keep_episodes=True, desc=f"rollout ({handle.kind})", collector=self.collector,
+                                   seed=self.seed + 1000 * (r + 1) + 100 * i)
+                self.buffer.add_episodes(res.episodes, keys=("state", "state_estimate", "action", "return_to_go"))
+                metrics[f"rollout/{handle.kind}_normalized_performance"] = float(res.final_performance.mean())
+                parts.append(f"rollout ({handle.kind}) {res.final_performance.mean():.3f}")
+        return {**metrics, "round": r + 1}, ", ".join(parts)
+
+
+def distill_state(run: Run, updater: Any, buffer: TrajectoryReplayBuffer) -> RunState:
+    """The resume state of a distillation run: its counters ``rounds`` and ``updates`` (the step), the
+    evaluations' means (:class:`StudentEvaluations`), with the states of ``updater`` and ``buffer``."""
+    return RunState(run, {"rounds": 0, "updates": 0, **StudentEvaluations.counters()}, step_key="updates",
+                    updater=updater, buffer=buffer)
+
+
+class StudentEvaluations:
+    """The evaluations of a distillation run, on the eval episodes of ``protocol`` (an
+    :class:`~trakdis.evaluation.EvalProtocol`; none when it plays 0 episodes) in ``env``, logged at
+    ``state["updates"]``: the student (``handle``, a :class:`~trakdis.policies.PolicyHandle`) with the
+    encoder's error on the states it visits (:meth:`__call__`), before training (:meth:`initial`), every
+    few rounds (:meth:`after_round`) and at the end (:meth:`final`: the kept snapshot's), and the teacher
+    (:meth:`teacher`). Their means live in ``state`` (:meth:`counters`: ``teacher_eval``, ``initial_eval``,
+    ``round_evals`` by round, ``final_eval``), so a resumed run plays none of them again."""
+
+    def __init__(self, run: Run, protocol: Any, handle: PolicyHandle, env: Any, state: RunState):
+        self.run, self.protocol, self.handle, self.env, self.state = run, protocol, handle, env, state
+
+    @staticmethod
+    def counters() -> dict[str, Any]:
+        """The state's entries of the evaluations, none done yet (``final_eval`` is set by :meth:`final`)."""
+        return {"initial_eval": None, "teacher_eval": None, "round_evals": {}}
+
+    def __call__(self, tag: str, prefix: str = "eval") -> float | None:
+        """The student now: its mean normalized performance (None: no evaluation episodes)."""
+        if not self.protocol.episodes:
+            return None
+        return self.protocol.run(self.run, self.handle, self.env, step=self.state["updates"], tag=tag, prefix=prefix,
+                                 keep_mode=self.handle.actor,
+                                 state_error_cm=task_spec(self.handle.task).state_error_cm).summary()["mean"]
+
+    def teacher(self, teacher: PolicyHandle, *, parallel: bool = False) -> None:
+        """The teacher on the same episodes, unless done, on its own env, closed afterwards
+        (:meth:`~trakdis.evaluation.EvalProtocol.run_snapshot`)."""
+        if self.protocol.episodes and self.state["teacher_eval"] is None:
+            self.state["teacher_eval"] = self.protocol.run_snapshot(
+                self.run, teacher, step=self.state["updates"], tag="teacher", prefix="eval_teacher", parallel=parallel,
+                keep_mode=self.handle.actor, desc="eval (teacher)").summary()["mean"]
+
+    def initial(self) -> None:
+        """The student before training (the weight copy), unless done."""
+        if self.state["initial_eval"] is None:
+            self.state["initial_eval"] = self("student before training")
+
+    def after_round(self, r: int) -> None:
+        """The student after round ``r`` (:func:`~trakdis.training.train_rounds`' ``evaluate``), kept by round."""
+        self.state["round_evals"][r] = self(f"student after round {r}")
+
+    def final(self, rounds: int, selection: SnapshotSelection | None = None) -> float | None:
+        """The run's final score, ``state["final_eval"]``: the student after the last of ``rounds`` (the curve's
+        last point; ``rounds`` 0: the weights did not change, the initial evaluation stands), then, with a
+        ``selection``, the kept snapshot's (:meth:`~trakdis.training.SnapshotSelection.finish` restores it):
+        its evaluation on the curve where there is one (logged again as ``eval_kept/`` at this step), else
+        evaluated afresh as ``eval_kept/``."""
+        final = self("student after distillation") if rounds > 0 else self.state["initial_eval"]
+        if selection is not None:
+            best = selection.finish(rounds, self.run.print)
+            if best != rounds and self.protocol.episodes:
+                final = self.state["initial_eval"] if best == 0 else self.state["round_evals"].get(best)
+                if final is None:
+                    final = self(f"the kept student (round {best})", prefix="eval_kept")
+                else:
+                    self.run.log(self.state["updates"], {"eval_kept/normalized_performance": final})
+                    self.run.print(f"the kept student (round {best}): its evaluation on the curve, {final:.3f}")
+        self.state["final_eval"] = final
+        return final
+
+    def report(self) -> str:
+        """The printed line of the teacher's, the initial and the final evaluation."""
+        scores = [f"{k} {'not evaluated' if self.state[v] is None else format(self.state[v], '.3f')}"
+                  for k, v in (("teacher", "teacher_eval"), ("student before", "initial_eval"), ("after", "final_eval"))]
+        return f"eval normalized performance: {', '.join(scores)} ({self.protocol.episodes} episodes)"
