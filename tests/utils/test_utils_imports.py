@@ -12,7 +12,7 @@ TRAKDIS = Path(__file__).resolve().parents[2] / "trakdis"
 
 # floor of each part of trakdis: a part may import its own floor and the floors below it
 FLOORS = {"utils": 0, "envs": 1, "transforms": 2, "modules": 3, "data": 3, "objectives": 4, "policies": 4,
-          "optim": 4, "evaluation": 5, "training": 6, "teacher": 6, "student": 6, "method": 6}
+          "optim": 4, "evaluation": 5, "training": 6, "teacher": 6, "student": 6, "encoder_training": 6, "method": 6}
 
 
 def imported_modules(source: str, module: str) -> list[str]:
