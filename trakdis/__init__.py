@@ -3,9 +3,11 @@
 Parts, lowest floor first (docs/design.md): ``utils`` (generic helpers), ``envs`` (MuJoCo cloth
 tasks), ``transforms``, ``modules`` (Decision Transformer, encoder), ``data`` (episode layout, datasets,
 replay buffer), ``objectives`` (losses), ``policies`` (policy and encoder files, a loaded policy and its
-acting env), ``optim``, ``evaluation``, ``training`` (the recipes' update loop), ``student`` (the student
-of a teacher and an encoder: its weight copy, rollouts and races), ``method`` (the method's stages and
-their default options).
+acting env), ``optim``, ``evaluation``, ``training`` (the recipes' update loop, the snapshot kept),
+``teacher`` (the teacher's run: its online phase and evaluations), ``student`` (the student of a teacher
+and an encoder: its weight copy, rollouts and races, its distillation), ``encoder_training`` (the
+encoder's run: the epoch kept, the student rounds' images, the member kept), ``method`` (the method's
+stages and their default options).
 """
 
 import importlib.metadata as _metadata
