@@ -5,6 +5,8 @@
     python benchmarks/table1.py --name q --quick                   # small sizes (same as --preset quick)
     python benchmarks/table1.py --name t1 --report                 # the table so far (runs nothing; beside the run)
     python benchmarks/table1.py --name t1 --tasks ClothFold --seeds 5
+    python benchmarks/table1.py --name t1 --ray                    # stages as Ray tasks on every core
+    python benchmarks/table1.py --name t1 --ray-address auto --eval-chunk 20   # on a Ray cluster (docs/scaling.md)
 
 For every task and seed (``--seed``, ``--seed`` + 1, ... ``--seeds`` of them) it runs, each as an
 ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>``:
@@ -30,7 +32,9 @@ ordinary run of its recipe under ``<root>/<recipe>/<name>-<task>-s<seed>-<stage>
 A stage whose output file exists is skipped and an interrupted one resumed, so ``--resume`` (or
 the same command again) continues where a kill stopped it. ``--methods`` picks a subset. The
 evaluations run as low-priority background processes, one at a time, as soon as their policy exists,
-beside the training stages that follow (``--overlap``; ``--no-overlap``: in turn; the same numbers).
+beside the training stages that follow (``--overlap``; ``--no-overlap``: in turn; the same numbers). With ``--ray``
+or ``--ray-address`` every stage is a Ray task instead, run once the stages it reads have, the 3 tasks x 3 seeds side
+by side (``trakdis.utils.ray_stages``; ``--eval-chunk``: evaluations in parts): the same numbers.
 The full run takes hours; ``--report`` writes the files below into ``report/`` beside them, from the
 evaluations finished so far, from another shell while it runs, and starts nothing.
 
