@@ -190,8 +190,17 @@ def test_acting_equals_the_training_forward(mode):
     ref = TensorDict({"state": traj["state"], "action": traj["action"], "return_to_go": traj["return_to_go"],
                       "timestep": traj["step_count"][..., 0], "mask": torch.ones(2, K, dtype=torch.bool)}, [2, K])
     with torch.no_grad():
-        expected = actor.get_dist(ref).deterministic_sample
-    torch.testing.assert_close(traj["action"], expected, rtol=0, atol=1e-5)
+        dist = actor.get_dist(ref)
+    # the grasps switch at the median of their switch time, from the probabilities along the episode
+    stay, closed = torch.ones(2, len(GRASP)), torch.zeros(2, len(GRASP), dtype=torch.bool)
+    for t in range(K):
+        p = torch.sigmoid(dist.grasp_logits[:, t])
+        stay = stay * torch.where(closed, p, 1 - p)
+        switch = stay <= 0.5
+        stay[switch], closed = 1.0, closed ^ switch
+        expected = GraspConditionedTanhNormal(dist.loc[:, t], dist.scale[:, t], dist.grasp_logits[:, t],
+                                              grasp_dims=GRASP).action_for(closed)
+        torch.testing.assert_close(traj["action"][:, t], expected, rtol=0, atol=1e-5)
     assert set(traj["action"][..., list(GRASP)].unique().tolist()) <= {-1.0, 1.0}
     with set_exploration_type(ExplorationType.RANDOM):
         sampled = policy(steps[0].clone())["action"]
@@ -240,3 +249,27 @@ def test_a_saved_teacher_with_a_grasp_head_loads_with_it(tmp_path):
     assert loaded.config.grasp_head and loaded.config.grasp_dims == spec.grasp_dims
     for (name, a), (_, b) in zip(find_dt_actor(actor).state_dict().items(), loaded.state_dict().items()):
         assert torch.equal(a, b), name
+
+
+def test_acting_closes_at_the_median_of_the_close_time():
+    # p(close) = 0.3 at every step: each step's argmax never closes; a sampled grasp has closed by the second
+    # step with probability 0.51, so the deterministic policy closes there; it holds while p(closed) stays high
+    # (a hold of p 0.99 per step would release at the step where 0.99^n falls to one half)
+    torch.manual_seed(0)
+    cfg = DTModelConfig(state_dim=S, action_dim=4, embed_dim=16, n_layer=1, n_head=2, context_len=K, max_timestep=32,
+                        grasp_head=True, grasp_dims=(3,))
+    actor = make_dt_actor(cfg, observation_key="state").eval()
+    head = actor.module[0].module.head_grasp
+    policy = DTActingPolicy(actor)
+    grasps = []
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        for t in range(6):
+            head.bias.fill_(math.log(0.3 / 0.7) if t < 2 else math.log(0.99 / 0.01))
+            td = TensorDict(state=torch.zeros(1, S), return_to_go=torch.zeros(1, 1),
+                            step_count=torch.full((1, 1), t), batch_size=[1])
+            grasps.append(policy(td)["action"][0, 3].item())
+        head.bias.fill_(math.log(0.3 / 0.7))  # a reset starts open again
+        td = TensorDict(state=torch.zeros(1, S), return_to_go=torch.zeros(1, 1),
+                        step_count=torch.zeros(1, 1, dtype=torch.long), batch_size=[1])
+        grasps.append(policy(td)["action"][0, 3].item())
+    assert grasps == [-1.0, 1.0, 1.0, 1.0, 1.0, 1.0, -1.0]

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import ProbabilisticTensorDictModule, TensorDictModule, TensorDictModuleBase
+from tensordict.nn import InteractionType, ProbabilisticTensorDictModule, TensorDictModule, TensorDictModuleBase
+from tensordict.nn.probabilistic import interaction_type
 from torch import nn
 
 from trakdis.modules.decision_transformer import TOKENS_PER_STEP, StochasticDTActor, find_dt_actor
+from trakdis.modules.grasp_distribution import GraspConditionedTanhNormal
 from trakdis.modules.transformer import KVCache
 
 __all__ = ["DTActingPolicy"]
@@ -27,8 +29,12 @@ class DTActingPolicy(TensorDictModuleBase):
     Per call it reads ``observation_key`` ``[*B, state_dim]``, ``"return_to_go"`` ``[*B, 1]`` and
     ``"step_count"`` ``[*B, 1]`` (int; 0 means this env was just reset: its context is cleared)
     and writes ``"action"`` ``[*B, action_dim]`` for the newest step, drawn from the actor's
-    ``TanhNormal`` (or ``GraspConditionedTanhNormal``) according to the current ``ExplorationType`` (``DETERMINISTIC``: ``tanh(loc)``;
-    ``RANDOM``: a sample; default: the actor's default, deterministic). ``*B`` may be empty (an
+    ``TanhNormal`` according to the current ``ExplorationType`` (``DETERMINISTIC``: ``tanh(loc)``;
+    ``RANDOM``: a sample; default: the actor's default, deterministic). With a grasp head
+    (``GraspConditionedTanhNormal``), ``DETERMINISTIC`` switches each grasp at the median of its
+    switch time: once the probability that a sampled grasp would have switched since its last
+    switch (close an open picker, open a closed one) reaches one half; the movement is ``tanh(loc)``
+    of the grasp's branch. ``*B`` may be empty (an
     unbatched env), ``[1]`` or any shape; a change of batch shape re-allocates (and clears) the
     context. Call under ``actor.eval()`` to disable dropout. Inputs are cast to the actor's dtype
     (float64 observations work); an empty batch, or a NaN/inf observation or return-to-go (which
@@ -108,6 +114,9 @@ class DTActingPolicy(TensorDictModuleBase):
             # slot p holds tokens (a_{t-1}, R_t, s_t) of the step t written at ring position p
             self._tok_valid = torch.zeros(n, k, TOKENS_PER_STEP, dtype=torch.bool, device=device)
             self._causal3 = torch.ones(3, 3, dtype=torch.bool, device=device).tril_()
+        if self.dt.config.grasp_head:  # per env and picker: the probability of no switch since the last one
+            self._stay = torch.ones(n, len(self.dt.config.grasp_dims), device=device, dtype=dtype)
+            self._grasp_index = torch.tensor(self.dt.config.grasp_dims, device=device)
         self._ptr = 0
         self._n = n
 
@@ -145,13 +154,45 @@ class DTActingPolicy(TensorDictModuleBase):
         with torch.no_grad():
             if self._n != n or self._obs.device != obs.device:
                 self._allocate(n, obs.device, obs.dtype)
+            grasp = self.dt.config.grasp_head and self._deterministic()
+            if grasp:
+                prev_closed = self._previous_grasps(step_count)
             params = self._step(obs, rtg, step_count)
-            small = TensorDict(dict(zip(self._dist_keys, params)), batch_size=[n])
-            action = self._prob_module(small).get(self._prob_module.out_keys[0])
+            if grasp:
+                action = self._median_switch(params, prev_closed)
+            else:
+                small = TensorDict(dict(zip(self._dist_keys, params)), batch_size=[n])
+                action = self._prob_module(small).get(self._prob_module.out_keys[0])
             self._act[:, self._ptr] = action
             self._ptr = (self._ptr + 1) % self.context_len
         tensordict.set(self.action_key, action.reshape(*batch, c.action_dim).to(out_device))
         return tensordict
+
+    # -- the grasp head's deterministic grasp ---------------------------------------------------
+    def _deterministic(self) -> bool:
+        mode = interaction_type() or self._prob_module.default_interaction_type
+        return mode in (InteractionType.DETERMINISTIC, InteractionType.MODE)
+
+    def _previous_grasps(self, step_count: torch.Tensor) -> torch.Tensor:
+        """Each env's grasp commands at its previous step ``[N, P]`` (open after a reset)."""
+        prev = (self._ptr - 1) % self.context_len
+        had = self._valid[:, prev] & (step_count != 0)
+        self._stay[step_count == 0] = 1.0
+        return (self._act[:, prev].index_select(-1, self._grasp_index) > 0) & had[:, None]
+
+    def _median_switch(self, params, prev_closed: torch.Tensor) -> torch.Tensor:
+        # A grasp is a switch in time: at each step the head gives the probability of switching (closing
+        # an open picker, opening a closed one) given that it has not switched so far. Sampled, the switch
+        # comes at some step; deterministically it comes at that time's median, the step where the
+        # probability of having switched since the last switch reaches one half. With confident
+        # probabilities this is the argmax; where the probability is spread over several steps (a close
+        # timed from the timestep), the argmax of each step alone may never close.
+        dist = GraspConditionedTanhNormal(*params, grasp_dims=self.dt.config.grasp_dims)
+        p_closed = torch.sigmoid(dist.grasp_logits)
+        self._stay *= torch.where(prev_closed, p_closed, 1.0 - p_closed)
+        switch = self._stay <= 0.5
+        self._stay[switch] = 1.0
+        return dist.action_for(prev_closed ^ switch)
 
     def _step(self, obs, rtg, step_count):
         k, p = self.context_len, self._ptr

@@ -106,11 +106,18 @@ class GraspConditionedTanhNormal(D.Distribution):
     def support(self):
         return D.constraints.independent(D.constraints.interval(-1.0, 1.0), 1)
 
-    @property
-    def deterministic_sample(self) -> torch.Tensor:
-        closed = self.grasp_logits > 0
+    def action_for(self, closed: torch.Tensor) -> torch.Tensor:
+        """The deterministic action ``[*B, A]`` of the grasp decisions ``closed`` ``[*B, P]``: the commands
+        ``+-1`` and ``tanh(loc)`` of their branches."""
         loc, _ = self.branch(closed)
         return self._action(closed, torch.tanh(loc))
+
+    @property
+    def deterministic_sample(self) -> torch.Tensor:
+        """Each grasp by its more likely value (logit > 0), the movement of its branch. Acting step by
+        step, :class:`~trakdis.modules.DTActingPolicy` decides the grasp from the whole episode instead
+        (the median of the switch time)."""
+        return self.action_for(self.grasp_logits > 0)
 
     @property
     def mode(self) -> torch.Tensor:
@@ -157,6 +164,4 @@ class GraspConditionedTanhNormal(D.Distribution):
         """The deterministic movement ``tanh(loc)`` ``[*B, A]`` in the branches of ``value``'s grasps
         (grasp dims hold ``value``'s commands): the action this policy takes if it grasps as ``value``
         does, for a squared-error imitation of the movement."""
-        closed = self.closed(value)
-        loc, _ = self.branch(closed)
-        return self._action(closed, torch.tanh(loc))
+        return self.action_for(self.closed(value))
