@@ -73,11 +73,13 @@ def data_args(task: str) -> list[str]:
 
 def teacher_stage_args(task: str, extra: str = TEACHER_ARGS, *, mask_unseen_pickers: bool = False) -> list[str]:
     """``recipes/online_dt.py``: the expert dataset, collected with the images the encoder stage reads
-    (one collection, not two), and the privileged teacher; it evaluates nothing itself (the callers do)."""
+    (one collection, not two), and the privileged teacher, with the grasp head where the task's
+    ``TaskDefaults.grasp_head`` says so; it evaluates nothing itself (the callers do)."""
     extra_args = shlex.split(extra)
     preset = any(a == "--preset" or a.startswith("--preset=") for a in extra_args)
     resets = [] if preset else shlex.split(MAIN_JOB_RESETS)
-    return ["--task", task, *resets, *data_args(task), "--collect-pixels",
+    grasp_head = ["--model.grasp-head"] if task_defaults(task).grasp_head else []  # --model.no-grasp-head in extra wins
+    return ["--task", task, *resets, *grasp_head, *data_args(task), "--collect-pixels",
             *_flags(mask_unseen_pickers=mask_unseen_pickers), "--eval-episodes", "0", *extra_args]
 
 

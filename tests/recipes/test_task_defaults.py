@@ -7,7 +7,7 @@ import pytest
 
 from trakdis.envs import TASKS, task_spec
 from trakdis.envs.task_defaults import TASK_DEFAULTS, TaskDefaults, task_defaults
-from trakdis.method import data_args, teacher_candidates
+from trakdis.method import TEACHER_ARGS, data_args, teacher_candidates, teacher_stage_args
 from trakdis.modules import recipe_hidden_action_dims
 from trakdis.utils.config import parse_config
 
@@ -32,6 +32,7 @@ def test_the_measured_values():
     assert (cf.hidden_grasp, pinned.hidden_grasp, unpinned.hidden_grasp) == (True, False, False)
     assert (cf.teacher_candidates, pinned.teacher_candidates, unpinned.teacher_candidates) == (1, 3, 3)
     assert (cf.close_radius, pinned.close_radius, unpinned.close_radius) == (0.01, None, None)
+    assert (cf.grasp_head, pinned.grasp_head, unpinned.grasp_head) == (False, True, False)
 
 
 @pytest.mark.parametrize("task", TASKS)
@@ -54,6 +55,9 @@ def test_each_recipe_resolves_the_tables_default(task):
 
     assert recipe_hidden_action_dims(task) == (task_spec(task).grasp_dims if defaults.hidden_grasp else ())
     assert teacher_candidates(task) == defaults.teacher_candidates and teacher_candidates(task, 2) == 2
+    online_dt = load_recipe("online_dt").OnlineDTConfig
+    assert parse_config(online_dt, teacher_stage_args(task)).model.grasp_head == defaults.grasp_head
+    assert not parse_config(online_dt, teacher_stage_args(task, TEACHER_ARGS + " --model.no-grasp-head")).model.grasp_head
     assert data_args(task) == ([] if defaults.close_radius is None
                                else ["--data.close-radius", str(defaults.close_radius)])
 

@@ -35,6 +35,10 @@ class TaskDefaults:
         teacher_candidates: teacher stages run when a caller names no number (one draw often lands far below
             the others on the diagonal folds; on ClothFold the draws are close and 30 episodes do not rank them;
             docs/recipes/distill.md).
+        grasp_head: the method's teacher (and so its student, a copy of it) models the grasp with the grasp head
+            (``--model.grasp-head``: a Bernoulli grasp and the movement of its branch; without it a pinned-fold
+            teacher trained on noisy states lifts the open picker while unsure whether to close and collapses
+            on some seeds; docs/recipes/online_dt.md).
         close_radius: the expert data's grasp-close radius (``--data.close-radius``) of every stage of the
             method, ``None`` for the data's default (a policy acting on blurred states closes about 1.5 cm
             farther out than its demonstrations, beyond ClothFold's reach from 2 cm; docs/recipes/pipeline.md).
@@ -46,13 +50,14 @@ class TaskDefaults:
     hidden_grasp: bool
     teacher_candidates: int
     close_radius: float | None = None
+    grasp_head: bool = False
 
 
 TASK_DEFAULTS = {
     "ClothFold": TaskDefaults(select_episodes=0, expert_coef=1.0, test_time_flip=True, hidden_grasp=True,
                               teacher_candidates=1, close_radius=0.01),
     "ClothFoldDiagonalPinned": TaskDefaults(select_episodes=30, expert_coef=0.0, test_time_flip=False,
-                                            hidden_grasp=False, teacher_candidates=3),
+                                            hidden_grasp=False, teacher_candidates=3, grasp_head=True),
     "ClothFoldDiagonalUnpinned": TaskDefaults(select_episodes=30, expert_coef=0.0, test_time_flip=False,
                                               hidden_grasp=False, teacher_candidates=3),
 }
