@@ -123,6 +123,8 @@ def test_config_needs_and_fills_grasp_dims():
         DTModelConfig(state_dim=S, action_dim=A, grasp_head=True)
     with pytest.raises(ValueError, match="grasp_dims"):
         DTModelConfig(state_dim=S, action_dim=A, grasp_head=True, grasp_dims=(3, 9))
+    with pytest.raises(ValueError, match="hidden from the action tokens"):
+        DTModelConfig(grasp_head=True).for_task(S, A, horizon=10, hidden_action_dims=GRASP, grasp_dims=GRASP)
     cfg = DTModelConfig(grasp_head=True).for_task(S, A, horizon=10, grasp_dims=GRASP)
     assert cfg.grasp_dims == GRASP
     assert DTModelConfig().for_task(S, A, horizon=10, grasp_dims=GRASP).grasp_dims is None  # no head, no dims
@@ -273,3 +275,23 @@ def test_acting_closes_at_the_median_of_the_close_time():
                         step_count=torch.zeros(1, 1, dtype=torch.long), batch_size=[1])
         grasps.append(policy(td)["action"][0, 3].item())
     assert grasps == [-1.0, 1.0, 1.0, 1.0, 1.0, 1.0, -1.0]
+
+
+@pytest.mark.parametrize("field,value", [("grasp_dims", [3.5]), ("grasp_dims", list(range(10))), ("grasp_dims", "37"),
+                                         ("grasp_head", "false"), ("grasp_head", 1)])
+def test_a_policy_file_with_bad_grasp_fields_is_refused(tmp_path, field, value):
+    from trakdis.envs import task_spec
+    from trakdis.policies import load_teacher, save_policy
+    from trakdis.utils.checkpoint import FileFormatError, read_checkpoint
+
+    spec = task_spec("ClothFoldDiagonalPinned")
+    cfg = DTModelConfig(embed_dim=16, n_layer=1, n_head=1, context_len=4, grasp_head=True)
+    cfg = cfg.for_task(spec.state_dim, spec.action_dim, horizon=10, grasp_dims=spec.grasp_dims)
+    save_policy(tmp_path / "policy.pt", kind="teacher", task="ClothFoldDiagonalPinned", horizon=10, dt_config=cfg,
+                actor=make_dt_actor(cfg, observation_key="state"), observation_key="state", target_return=-1.0,
+                rtg_scale=1.0)
+    payload = read_checkpoint(tmp_path / "policy.pt")
+    payload["dt_config"][field] = value
+    torch.save(payload, tmp_path / "policy.pt")
+    with pytest.raises(FileFormatError, match=field):
+        load_teacher(tmp_path)

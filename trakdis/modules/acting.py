@@ -184,9 +184,11 @@ class DTActingPolicy(TensorDictModuleBase):
         # A grasp is a switch in time: at each step the head gives the probability of switching (closing
         # an open picker, opening a closed one) given that it has not switched so far. Sampled, the switch
         # comes at some step; deterministically it comes at that time's median, the step where the
-        # probability of having switched since the last switch reaches one half. With confident
-        # probabilities this is the argmax; where the probability is spread over several steps (a close
-        # timed from the timestep), the argmax of each step alone may never close.
+        # probability of having switched since the last switch reaches one half. Where the probability is
+        # spread over several steps (a close timed from the timestep), the argmax of each step alone may never
+        # close. Small doubts add up too: a hold at 0.99 per step would release after 69 steps, so the rule
+        # needs a head that reads its own past grasps (DTModelConfig refuses a grasp head with hidden grasp
+        # commands) and is confident while it holds.
         dist = GraspConditionedTanhNormal(*params, grasp_dims=self.dt.config.grasp_dims)
         p_closed = torch.sigmoid(dist.grasp_logits)
         self._stay *= torch.where(prev_closed, p_closed, 1.0 - p_closed)

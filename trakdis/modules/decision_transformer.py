@@ -123,6 +123,10 @@ class DTModelConfig:
                 picker_of_dims(self.action_dim, self.grasp_dims)  # raises on bad dims
         if self.grasp_head and self.grasp_dims is None and self.action_dim is not None and self.state_dim is not None:
             raise ValueError("DTModelConfig.grasp_head needs grasp_dims (the recipes fill them in from the task)")
+        if self.grasp_head and self.grasp_dims and set(self.grasp_dims) & set(self.hidden_action_dims or ()):
+            raise ValueError(f"DTModelConfig.grasp_head with grasp_dims {self.grasp_dims} hidden from the action tokens "
+                             f"(hidden_action_dims {self.hidden_action_dims}): the grasp head decides a switch from its "
+                             f"own past grasps, so it must read them (--model.hidden-action-dims with no value shows them)")
         self.transformer_config()  # validates embed_dim/n_head/activation/dropouts
 
     @property
@@ -326,7 +330,8 @@ class StochasticDTActor(nn.Module):
     log-std layer starts with zero weights and a bias giving ``log_std = init_log_std``: with the
     orthogonal init, steps whose initial std is ~e^-5 produce NLLs of ~1e4 whose gradients slam
     other dims into the saturated top of the tanh, where training stalls. The tanh squashing of actions to [-1, 1] is done
-    by the ``TanhNormal`` distribution of the :class:`ProbabilisticActor` that wraps this module.
+    by the ``TanhNormal`` distribution of the :class:`ProbabilisticActor` that wraps this module (with
+    ``grasp_head``: :class:`~trakdis.modules.GraspConditionedTanhNormal`, fed two branches and the grasp logits).
     """
 
     def __init__(self, config: DTModelConfig):

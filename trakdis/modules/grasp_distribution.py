@@ -11,6 +11,7 @@ open-gripper movement whatever the probability of closing.
 """
 from __future__ import annotations
 
+import bisect
 import math
 
 import torch
@@ -29,9 +30,9 @@ def picker_of_dims(action_dim: int, grasp_dims: tuple[int, ...]) -> tuple[int, .
     picker 1, and so on (dims after the last grasp dim to the last picker). ``grasp_dims`` must be
     increasing and inside ``[0, action_dim)``."""
     dims = tuple(int(d) for d in grasp_dims)
-    if not dims or list(dims) != sorted(set(dims)) or dims[0] < 0 or dims[-1] >= action_dim:
+    if not dims or any(b <= a for a, b in zip(dims, dims[1:])) or dims[0] < 0 or dims[-1] >= action_dim:
         raise ValueError(f"grasp_dims={grasp_dims} must be increasing, distinct action dims in [0, {action_dim})")
-    return tuple(min(sum(g < d for g in dims), len(dims) - 1) for d in range(action_dim))
+    return tuple(min(bisect.bisect_left(dims, d), len(dims) - 1) for d in range(action_dim))
 
 
 class GraspConditionedTanhNormal(D.Distribution):

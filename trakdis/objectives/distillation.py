@@ -51,6 +51,11 @@ class DistillationLoss(LossModule):
       window's own ``"action"`` (clamped like the teacher's): on the expert's episodes, the demonstrated
       action beside the teacher's, as knowledge distillation mixes the hard labels with the teacher's
       (Hinton et al., 2015). Only meaningful where the window's actions are the expert's.
+    * with a grasp head (:class:`~trakdis.modules.GraspConditionedTanhNormal`): ``"nll"`` scores the teacher's
+      action under the student (its grasps as Bernoulli labels, the movement in the teacher's grasp branches);
+      ``"mse"`` is the movement's squared error in the teacher's branches plus the grasps' cross-entropy. The
+      teacher's grasp labels are each step's more likely grasp (``deterministic_sample``), not the switch-time
+      rule it acts by (:class:`~trakdis.modules.DTActingPolicy`); ``kl_coef > 0`` is refused.
     * metric ``teacher_student_mse``: masked mean squared difference of the deterministic actions.
 
     The teacher is evaluated in eval mode (no dropout) whatever its ``training`` flag, so its

@@ -155,6 +155,12 @@ def _dt_config(source: str, raw: Any, *, where: str = "dt_config", max_params: i
     if hidden is not None and not (isinstance(hidden, (list, tuple)) and len(hidden) <= raw.get("action_dim", 0)
                                    and all(limits.is_int(d) for d in hidden)):
         raise FileFormatError(f"{source}: {where}.hidden_action_dims must be a list of action dims, got {hidden!r}")
+    grasp = raw.get("grasp_dims")
+    if grasp is not None and not (isinstance(grasp, (list, tuple)) and len(grasp) <= raw.get("action_dim", 0)
+                                  and all(limits.is_int(d) for d in grasp)):
+        raise FileFormatError(f"{source}: {where}.grasp_dims must be a list of action dims, got {grasp!r}")
+    if not isinstance(raw.get("grasp_head", False), bool):
+        raise FileFormatError(f"{source}: {where}.grasp_head must be true or false, got {raw['grasp_head']!r}")
     if not isinstance(raw.get("activation", "gelu"), str):
         raise FileFormatError(f"{source}: {where}.activation must be a name, got {raw['activation']!r}")
     try:
