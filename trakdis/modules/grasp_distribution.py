@@ -18,10 +18,21 @@ import torch
 import torch.nn.functional as F
 from torch import distributions as D
 
-__all__ = ["GraspConditionedTanhNormal", "picker_of_dims"]
+__all__ = ["GraspConditionedTanhNormal", "picker_of_dims", "normal_log_prob", "tanh_log_det"]
 
 _LOG_2 = math.log(2.0)
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def normal_log_prob(x, loc, scale, log_scale):
+    """Elementwise log-density of a Normal: ``torch.distributions.Normal.log_prob``, op for op (same rounding)."""
+    return -((x - loc) ** 2) / (2 * scale**2) - log_scale - _LOG_SQRT_2PI
+
+
+def tanh_log_det(x):
+    """Elementwise ``log |d tanh(x) / dx|`` = ``2 (log 2 - x - softplus(-2x))``, stable for large ``|x|``
+    (``torch.distributions.TanhTransform.log_abs_det_jacobian``)."""
+    return 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x))
 
 
 def picker_of_dims(action_dim: int, grasp_dims: tuple[int, ...]) -> tuple[int, ...]:
@@ -140,8 +151,7 @@ class GraspConditionedTanhNormal(D.Distribution):
         loc, scale = self.branch(closed)
         eps = torch.finfo(value.dtype).resolution
         x = value.clamp(-(1.0 - eps), 1.0 - eps).atanh()
-        per_dim = (-((x - loc) ** 2) / (2 * scale**2) - scale.log() - _LOG_SQRT_2PI
-                   - 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x)))
+        per_dim = normal_log_prob(x, loc, scale, scale.log()) - tanh_log_det(x)
         return log_grasp + (per_dim * self.movement_mask.to(per_dim.dtype)).sum(-1)
 
     def grasp_entropy(self) -> torch.Tensor:
@@ -155,7 +165,7 @@ class GraspConditionedTanhNormal(D.Distribution):
         the probability of each branch."""
         eps = torch.randn((n, *self.loc.shape), dtype=self.loc.dtype, device=self.loc.device)
         x = self.loc + eps * self.scale  # [n, *B, 2, A]
-        log_p = (-(eps**2) / 2 - self.scale.log() - _LOG_SQRT_2PI) - 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x))
+        log_p = (-(eps**2) / 2 - self.scale.log() - _LOG_SQRT_2PI) - tanh_log_det(x)  # the Normal's at loc + eps scale
         per_dim = -log_p.mean(0) * self.movement_mask.to(log_p.dtype)  # [*B, 2, A]
         p_closed = torch.sigmoid(self.grasp_logits).index_select(-1, self._picker)  # [*B, A]
         movement = ((1 - p_closed) * per_dim[..., 0, :] + p_closed * per_dim[..., 1, :]).sum(-1)

@@ -1,21 +1,19 @@
 """Online Decision Transformer loss on padded windows: masked negative log-likelihood minus an entropy bonus."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential, dispatch
 from tensordict.utils import NestedKey
 from torchrl.modules import TanhNormal
 from torchrl.objectives import OnlineDTLoss
 
+from trakdis.modules.grasp_distribution import normal_log_prob, tanh_log_det
+
 __all__ = ["MaskedOnlineDTLoss", "masked_mean", "clamp_action", "tanh_normal_log_prob", "tanh_normal_rsample_log_prob"]
 
-_LOG_2 = math.log(2.0)
-_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 
 def masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -31,17 +29,6 @@ def clamp_action(action: torch.Tensor, eps: float) -> torch.Tensor:
     return action.clamp(-1.0 + eps, 1.0 - eps) if eps > 0 else action
 
 
-def _normal_log_prob(x, loc, scale, log_scale):
-    # torch.distributions.Normal.log_prob, op for op (same rounding)
-    return -((x - loc) ** 2) / (2 * scale**2) - log_scale - _LOG_SQRT_2PI
-
-
-def _tanh_log_det(x):
-    # log |d tanh(x) / dx| = log(1 - tanh(x)^2) = 2 (log 2 - x - softplus(-2x)): stable for large |x|
-    # (torch.distributions.TanhTransform.log_abs_det_jacobian)
-    return 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x))
-
-
 def tanh_normal_log_prob(loc, scale, value, log_scale=None) -> torch.Tensor:
     """``TanhNormal(loc, scale, low=-1, high=1).log_prob(value)`` in closed form (last dim = event).
 
@@ -52,7 +39,7 @@ def tanh_normal_log_prob(loc, scale, value, log_scale=None) -> torch.Tensor:
     eps = torch.finfo(value.dtype).resolution
     x = value.clamp(-(1.0 - eps), 1.0 - eps).atanh()
     log_scale = scale.log() if log_scale is None else log_scale
-    return -_tanh_log_det(x).sum(-1) + _normal_log_prob(x, loc, scale, log_scale).sum(-1)
+    return -tanh_log_det(x).sum(-1) + normal_log_prob(x, loc, scale, log_scale).sum(-1)
 
 
 def tanh_normal_rsample_log_prob(loc, scale, n: int, log_scale=None) -> torch.Tensor:
@@ -64,7 +51,7 @@ def tanh_normal_rsample_log_prob(loc, scale, n: int, log_scale=None) -> torch.Te
     eps = torch.empty((n, *loc.shape), dtype=loc.dtype, device=loc.device).normal_()
     x = loc + eps * scale
     log_scale = scale.log() if log_scale is None else log_scale
-    return _normal_log_prob(x, loc, scale, log_scale).sum(-1) - _tanh_log_det(x).sum(-1)
+    return normal_log_prob(x, loc, scale, log_scale).sum(-1) - tanh_log_det(x).sum(-1)
 
 
 def _tanh_normal_keys(actor) -> tuple[NestedKey, NestedKey] | None:

@@ -151,14 +151,11 @@ def _dt_config(source: str, raw: Any, *, where: str = "dt_config", max_params: i
     for name in ("dropout", "attn_dropout", "log_std_min", "log_std_max", "init_log_std", "loc_bound"):
         if raw.get(name) is not None and not limits.is_number(raw[name]):
             raise FileFormatError(f"{source}: {where}.{name} must be a finite number, got {raw[name]!r}")
-    hidden = raw.get("hidden_action_dims")
-    if hidden is not None and not (isinstance(hidden, (list, tuple)) and len(hidden) <= raw.get("action_dim", 0)
-                                   and all(limits.is_int(d) for d in hidden)):
-        raise FileFormatError(f"{source}: {where}.hidden_action_dims must be a list of action dims, got {hidden!r}")
-    grasp = raw.get("grasp_dims")
-    if grasp is not None and not (isinstance(grasp, (list, tuple)) and len(grasp) <= raw.get("action_dim", 0)
-                                  and all(limits.is_int(d) for d in grasp)):
-        raise FileFormatError(f"{source}: {where}.grasp_dims must be a list of action dims, got {grasp!r}")
+    for name in ("hidden_action_dims", "grasp_dims"):
+        dims = raw.get(name)
+        if dims is not None and not (isinstance(dims, (list, tuple)) and len(dims) <= raw.get("action_dim", 0)
+                                     and all(limits.is_int(d) for d in dims)):
+            raise FileFormatError(f"{source}: {where}.{name} must be a list of action dims, got {dims!r}")
     if not isinstance(raw.get("grasp_head", False), bool):
         raise FileFormatError(f"{source}: {where}.grasp_head must be true or false, got {raw['grasp_head']!r}")
     if not isinstance(raw.get("activation", "gelu"), str):
