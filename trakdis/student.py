@@ -28,7 +28,7 @@ from torch import nn
 
 from trakdis.data import DataConfig, TrajectoryReplayBuffer, load_encoded_dataset
 from trakdis.envs import close_env, task_defaults, task_spec
-from trakdis.evaluation import EpisodeStream, episode_score, race_survivors, run_episodes
+from trakdis.evaluation import CollectorName, EpisodeStream, episode_score, race_survivors, run_episodes
 from trakdis.modules import NormalizedEncoder, copy_teacher_weights, find_dt_actor, make_dt_actor
 from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
 from trakdis.policies import PolicyHandle, load_encoder, load_teacher
@@ -360,7 +360,7 @@ class DAggerRollouts:
     rounds: int
     horizon: int
     seed: int
-    collector: str = "sync"
+    collector: CollectorName = "sync"
     mixed: bool = False
 
     def __call__(self, r: int) -> tuple[dict[str, Any], str]:

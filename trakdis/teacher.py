@@ -24,7 +24,7 @@ from typing import Any, Callable, ClassVar, Literal
 import numpy as np
 
 from trakdis.data import expert_targets
-from trakdis.evaluation import compare_scores
+from trakdis.evaluation import CollectorName, compare_scores
 from trakdis.training import OnlineRollouts
 from trakdis.utils.limits import check_options
 from trakdis.utils.phases import PhaseTimer
@@ -71,7 +71,7 @@ class OnlinePhaseConfig:
         return self.online_rounds * self.episodes_per_round if self.action_target else 0
 
     def rollouts(self, env: Any, handle: Any, buffer: Any, *, task: str, horizon: int, seed: int,
-                 close_radius: float | None = None, collector: str = "sync", phases: PhaseTimer | None = None,
+                 close_radius: float | None = None, collector: CollectorName = "sync", phases: PhaseTimer | None = None,
                  workers: int = 1) -> OnlineRollouts:
         """The online rounds' ``roll_out`` (:class:`~trakdis.training.OnlineRollouts`): ``--episodes-per-round``
         episodes of ``handle`` in ``env`` (reseeded per round from ``seed``; the policy's seed ``seed``), their

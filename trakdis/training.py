@@ -28,7 +28,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from trakdis.envs import task_defaults
-from trakdis.evaluation import paired_difference, run_episodes
+from trakdis.evaluation import CollectorName, paired_difference, run_episodes
 from trakdis.optim import Updater, mean_metrics
 from trakdis.utils.limits import check_options
 from trakdis.utils.phases import PhaseTimer
@@ -119,7 +119,7 @@ def train_rounds(run: Run, updater: Updater, sample: Callable[[], TensorDictBase
 
 def online_rollouts(env: Any, handle: Any, buffer: Any, episodes: int, *, horizon: int, seed: int,
                     policy_seed: int | None = None, deterministic: bool = True, add: bool = True,
-                    collector: str = "sync", phases: PhaseTimer | None = None, workers: int = 1,
+                    collector: CollectorName = "sync", phases: PhaseTimer | None = None, workers: int = 1,
                     prefix: str = "online", extra: Mapping[str, Any] | None = None,
                     label: Callable[[TensorDictBase], TensorDictBase] | None = None) -> tuple[dict[str, Any], str]:
     """One round of Online DT's data collection, a :func:`train_rounds` ``roll_out``: ``episodes``
@@ -161,7 +161,7 @@ class OnlineRollouts:
     policy_seed: int | None = None
     deterministic: bool = True
     add: bool = True
-    collector: str = "sync"
+    collector: CollectorName = "sync"
     phases: PhaseTimer | None = None
     workers: int = 1
     label: Callable[[TensorDictBase], TensorDictBase] | None = None

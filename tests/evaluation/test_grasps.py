@@ -85,6 +85,10 @@ def test_the_estimate_at_the_first_close():
     assert report["picker0_first_close_cm"] == pytest.approx(6.0, abs=1e-4)
     assert report["picker0_close_estimate_cm"] == pytest.approx(math.hypot(6.0, 5.0), abs=1e-4)
     assert report["picker0_close_offset_error_cm"] == pytest.approx(5.0, abs=1e-4)
+    assert report["picker0_close_picker_error_cm"] == pytest.approx(5.0, abs=1e-4)
+    assert report["picker0_close_picker_height_error_cm"] == pytest.approx(0.0, abs=1e-4)
+    assert report["picker0_close_corner_error_cm"] == pytest.approx(0.0, abs=1e-4)
+    assert report["picker0_close_corner_rest_error_cm"] == pytest.approx(0.0, abs=1e-4)
     # an estimate that put the picker on the corner: a far close the encoder caused
     onto = ep["state"].clone()
     onto[:, 12:15] = onto[:, 0:3]
@@ -92,6 +96,9 @@ def test_the_estimate_at_the_first_close():
     fooled = grasp_report(TASK, ep)
     assert fooled["picker0_close_estimate_cm"] == pytest.approx(0.0, abs=1e-4)
     assert fooled["picker0_close_offset_error_cm"] == pytest.approx(6.0, abs=1e-4)
+    # the picker believed 6 cm lower than it is (on the corner, which rests)
+    assert fooled["picker0_close_picker_height_error_cm"] == pytest.approx(-6.0, abs=1e-4)
+    assert fooled["picker0_close_corner_error_cm"] == pytest.approx(0.0, abs=1e-4)
     never = _episode([0.0, 0.0, 0.10], close_at=None)
     never["state_estimate"] = never["state"].clone()
     assert math.isnan(grasp_report(TASK, never)["picker0_close_estimate_cm"])
@@ -102,3 +109,18 @@ def test_the_estimate_at_the_first_close():
     bad["state_estimate"] = torch.zeros(6, 12)
     with pytest.raises(ValueError, match="state_estimate has shape"):
         grasp_report(TASK, bad)
+
+
+def test_the_corner_estimate_averaged_over_its_rest():
+    # the source corner read 2 cm off in +y at steps 0-1 and 2 cm off in -y at step 2 (the close):
+    # the estimate at the close is 2 cm off, the mean of the three views 2/3 cm
+    ep = _episode([0.0, 0.0, 0.10], close_at=2)
+    estimate = ep["state"].clone()
+    estimate[:2, 1] += 0.02
+    estimate[2, 1] -= 0.02
+    ep["state_estimate"] = estimate
+    report = grasp_report(TASK, ep)
+    assert report["picker0_close_corner_error_cm"] == pytest.approx(2.0, abs=1e-4)
+    assert report["picker0_close_corner_rest_error_cm"] == pytest.approx(2.0 / 3.0, abs=1e-4)
+    assert report["picker0_close_offset_error_cm"] == pytest.approx(2.0, abs=1e-4)
+    assert report["picker0_close_picker_error_cm"] == pytest.approx(0.0, abs=1e-4)

@@ -44,7 +44,13 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
     ``picker{p}_close_estimate_cm`` (the picker-to-corner distance the estimate showed) and
     ``picker{p}_close_offset_error_cm`` (the length of the estimate's error in the picker-to-corner
     vector, the quantity the grasp depends on: a far close with a small estimated distance is the
-    encoder's fault, one with a large estimated distance the policy's). NaN if it never closed."""
+    encoder's fault, one with a large estimated distance the policy's), split into its two parts,
+    ``picker{p}_close_picker_error_cm`` and ``picker{p}_close_corner_error_cm`` (the lengths of the errors
+    in the picker's and in the source corner's position), with ``picker{p}_close_picker_height_error_cm``
+    (the estimated minus the true picker height: below 0, the picker believed lower than it is), and
+    ``picker{p}_close_corner_rest_error_cm``: the error of the mean of the source corner's estimates over
+    the steps up to the close (the corner rests until a picker takes it, so this is what a filter that
+    averages its views would read). NaN if it never closed."""
     if "state" not in episode.keys():
         return None
     spec = task_spec(task)
@@ -60,7 +66,7 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
     offset = pickers - corners  # [T, P, 3]: the picker relative to its source corner
     offset_hat = None
     if estimate is not None:
-        pickers_hat, corners_hat, _ = fold_points(task, estimate)
+        pickers_hat, corners_hat, _ = fold_points(task, estimate)  # [T, P, 3] each
         offset_hat = pickers_hat - corners_hat
     closed = action.reshape(*action.shape[:-1], spec.num_pickers, 4)[..., 3] > 0  # [T, P]
     out: dict[str, float | bool] = {}
@@ -74,6 +80,13 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
             out[f"picker{p}_close_estimate_cm"] = math.nan if t is None else 100.0 * float(offset_hat[t, p].norm())
             out[f"picker{p}_close_offset_error_cm"] = (
                 math.nan if t is None else 100.0 * float((offset_hat[t, p] - offset[t, p]).norm()))
+            picker_err = None if t is None else pickers_hat[t, p] - pickers[t, p]
+            out[f"picker{p}_close_picker_error_cm"] = math.nan if t is None else 100.0 * float(picker_err.norm())
+            out[f"picker{p}_close_picker_height_error_cm"] = math.nan if t is None else 100.0 * float(picker_err[2])
+            out[f"picker{p}_close_corner_error_cm"] = (
+                math.nan if t is None else 100.0 * float((corners_hat[t, p] - corners[t, p]).norm()))
+            out[f"picker{p}_close_corner_rest_error_cm"] = (
+                math.nan if t is None else 100.0 * float((corners_hat[: t + 1, p].mean(0) - corners[t, p]).norm()))
         rise = corners[:, p, 2] - targets[:, p, 2]
         out[f"picker{p}_corner_lifted"] = bool(rise.max() * 100.0 >= LIFTED_CM)
         opens = (closed[:-1, p] & ~closed[1:, p]).nonzero()
