@@ -26,6 +26,9 @@ FAR_CLOSE_CM = 4.5
 # A source corner counts as lifted once it rose this far above its target corner (a folded flap
 # rises 10-20 cm; a corner dragged along the table stays within ~1 cm).
 LIFTED_CM = 3.0
+# The report's entries at the first close of a policy that read an estimate (grasp_report's docstring).
+_ESTIMATE_FIELDS = ("close_estimate_cm", "close_offset_error_cm", "close_picker_error_cm",
+                    "close_picker_height_error_cm", "close_corner_error_cm", "close_corner_rest_error_cm")
 
 
 def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] | None:
@@ -64,10 +67,8 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
         raise ValueError(f"grasp_report: {task} episode's state_estimate has shape {tuple(estimate.shape)}, "
                          f"its state {tuple(state.shape)}")
     offset = pickers - corners  # [T, P, 3]: the picker relative to its source corner
-    offset_hat = None
     if estimate is not None:
         pickers_hat, corners_hat, _ = fold_points(task, estimate)  # [T, P, 3] each
-        offset_hat = pickers_hat - corners_hat
     closed = action.reshape(*action.shape[:-1], spec.num_pickers, 4)[..., 3] > 0  # [T, P]
     out: dict[str, float | bool] = {}
     for p in range(spec.num_pickers):
@@ -76,17 +77,16 @@ def grasp_report(task: str, episode: TensorDictBase) -> dict[str, float | bool] 
         out[f"picker{p}_first_close_cm"] = math.nan if t is None else 100.0 * float(offset[t, p].norm())
         out[f"picker{p}_first_close_height_cm"] = math.nan if t is None else 100.0 * float(offset[t, p, 2])
         out[f"picker{p}_first_close_step"] = math.nan if t is None else float(t)
-        if offset_hat is not None:
-            out[f"picker{p}_close_estimate_cm"] = math.nan if t is None else 100.0 * float(offset_hat[t, p].norm())
-            out[f"picker{p}_close_offset_error_cm"] = (
-                math.nan if t is None else 100.0 * float((offset_hat[t, p] - offset[t, p]).norm()))
-            picker_err = None if t is None else pickers_hat[t, p] - pickers[t, p]
-            out[f"picker{p}_close_picker_error_cm"] = math.nan if t is None else 100.0 * float(picker_err.norm())
-            out[f"picker{p}_close_picker_height_error_cm"] = math.nan if t is None else 100.0 * float(picker_err[2])
-            out[f"picker{p}_close_corner_error_cm"] = (
-                math.nan if t is None else 100.0 * float((corners_hat[t, p] - corners[t, p]).norm()))
-            out[f"picker{p}_close_corner_rest_error_cm"] = (
-                math.nan if t is None else 100.0 * float((corners_hat[: t + 1, p].mean(0) - corners[t, p]).norm()))
+        if estimate is not None:  # what the policy read at its first close (metres here, cm in the report)
+            at_close = dict.fromkeys(_ESTIMATE_FIELDS, math.nan)
+            if t is not None:
+                offset_hat = pickers_hat[t, p] - corners_hat[t, p]
+                picker_err = pickers_hat[t, p] - pickers[t, p]
+                at_close = {k: 100.0 * float(v) for k, v in zip(_ESTIMATE_FIELDS, (
+                    offset_hat.norm(), (offset_hat - offset[t, p]).norm(), picker_err.norm(), picker_err[2],
+                    (corners_hat[t, p] - corners[t, p]).norm(),
+                    (corners_hat[: t + 1, p].mean(0) - corners[t, p]).norm()))}
+            out.update({f"picker{p}_{k}": v for k, v in at_close.items()})
         rise = corners[:, p, 2] - targets[:, p, 2]
         out[f"picker{p}_corner_lifted"] = bool(rise.max() * 100.0 >= LIFTED_CM)
         opens = (closed[:-1, p] & ~closed[1:, p]).nonzero()
