@@ -317,13 +317,13 @@ def test_offline_state_buffer_fits_on_a_fresh_run_and_reloads_from_the_checkpoin
     loaded = []
     monkeypatch.setattr(loading, "load_offline_data", lambda cfg, **kw: loaded.append(kw) or (data, lengths))
 
-    def start(*argv):
-        run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", "a", "--no-progress", *argv])
+    def start(*argv, name="a", **noise):
+        run = Run.start("toy", Cfg, ["--root", str(tmp_path), "--name", name, "--no-progress", *argv])
         state = RunState(run, {"normalizer": None, "best_return": None, "buffer_capacity": None}, step_key="x",
                          counters_key="counters")
         state["x"] = 0
         buffer, normalizer = offline_state_buffer(state, DataConfig(), phases=PhaseTimer(), task="ClothFold", horizon=4,
-                                                  seed=0, context_len=2, min_scale=0.5, state_noise=0.1)
+                                                  seed=0, context_len=2, min_scale=0.5, **(noise or {"state_noise": 0.1}))
         state.load()
         return state, buffer, normalizer
 
@@ -339,6 +339,14 @@ def test_offline_state_buffer_fits_on_a_fresh_run_and_reloads_from_the_checkpoin
     assert len(loaded) == 1  # the dataset is not read again
     assert resumed["best_return"] == state["best_return"] and torch.equal(normalizer2.loc, normalizer.loc)
     assert len(buffer2) == 3 and torch.equal(buffer2.returns, buffer.returns)
+    # state_offset: the same windows (same seed) shifted by one offset per window, the same at both its steps
+    _, exact, _ = start(name="exact", state_noise=0.0)
+    _, offset, _ = start(name="offset", state_noise=0.0, state_offset=0.1)
+    windows, shifted = exact.sample(64), offset.sample(64)
+    full = windows["mask"].all(1)  # (padded positions stay zero)
+    shift = (shifted["state"] - windows["state"])[full]
+    assert full.sum() > 8 and torch.equal(shifted["mask"], windows["mask"])
+    assert torch.allclose(shift[:, 0], shift[:, 1], atol=1e-6) and shift.abs().min() > 0
 
 
 @pytest.mark.parametrize("distill, proprio", [(True, ()), (False, ()), (False, (1,))])
@@ -397,8 +405,8 @@ def test_state_buffer_config_makes_the_teachers_buffer_with_its_options(monkeypa
 
     calls = []
     monkeypatch.setattr(loading, "offline_state_buffer", lambda state, data, **kwargs: calls.append((state, data, kwargs)))
-    cfg = StateBufferConfig(state_scale_floor=0.02, train_state_noise=0.01, mask_unseen_pickers=True, rtg_scale=2.0,
-                            buffer_replacement="oldest", early_windows=False)
+    cfg = StateBufferConfig(state_scale_floor=0.02, train_state_noise=0.01, train_state_offset=0.015,
+                            mask_unseen_pickers=True, rtg_scale=2.0, buffer_replacement="oldest", early_windows=False)
     cfg.state_buffer("state", "data", phases="phases", task="ClothFold", horizon=6, seed=3, context_len=4,
                      target_key="expert_action", extra_capacity=5, collect_pixels=True, progress=False)
     (state, data, kwargs), = calls
@@ -407,12 +415,13 @@ def test_state_buffer_config_makes_the_teachers_buffer_with_its_options(monkeypa
     assert fill.starts == OutOfViewFill.for_task("ClothFold").starts
     assert {k: v for k, v in kwargs.items() if k != "log"} == {
         "phases": "phases", "task": "ClothFold", "horizon": 6, "seed": 3, "context_len": 4, "rtg_scale": 2.0,
-        "min_scale": 0.02, "state_noise": 0.01, "early_windows": False, "replacement": "oldest", "collect_pixels": True,
+        "min_scale": 0.02, "state_noise": 0.01, "state_offset": 0.015, "early_windows": False, "replacement": "oldest", "collect_pixels": True,
         "progress": False, "target_key": "expert_action", "extra_capacity": 5}
     StateBufferConfig().state_buffer("state", "data", phases=None, task="ClothFold", horizon=6, seed=3, context_len=4)
     assert calls[1][2]["fill"] is None and calls[1][2]["target_key"] is None
     assert StateBufferConfig.SAVED_AS == {"state_noise": "train_state_noise"}  # the option's earlier name
-    for bad in ({"buffer_capacity": 0}, {"rtg_scale": 0.0}, {"state_scale_floor": 0.0}, {"train_state_noise": -1.0}):
+    for bad in ({"buffer_capacity": 0}, {"rtg_scale": 0.0}, {"state_scale_floor": 0.0}, {"train_state_noise": -1.0},
+                {"train_state_offset": -1.0}):
         with pytest.raises(ValueError, match=f"--{next(iter(bad)).replace('_', '-')}"):
             StateBufferConfig(**bad)
 

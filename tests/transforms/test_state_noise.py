@@ -49,3 +49,21 @@ def test_env_specs_single_and_serial():
     check_env_specs(serial, seed=0)
     bounded = Bounded(-1.0, 1.0, shape=(3,))
     assert not isinstance(StateNoise(0.1, in_keys=["x"]).transform_observation_spec(bounded), Bounded)
+
+
+def test_shared_dims_draw_one_offset_per_window():
+    """shared_dims=(-2,) on windows [B, K, D]: each window gets one offset, the same at its K steps; windows and
+    dims differ; its std is sigma; a dim the tensor lacks is refused, naming the key and shape."""
+    td = TensorDict({"state": torch.zeros(4000, 5, 3)}, [4000, 5])
+    out = StateNoise(0.02, in_keys=["state"], seed=1, shared_dims=(-2,))(td.clone())["state"]
+    assert torch.equal(out, out[:, :1].expand_as(out))  # constant over each window's steps
+    offsets = out[:, 0]
+    assert not torch.equal(offsets[0], offsets[1]) and not torch.equal(offsets[:, 0], offsets[:, 1])
+    assert abs(offsets.std().item() - 0.02) < 1e-3 and offsets.mean().abs() < 1e-3
+    iid = StateNoise(0.02, in_keys=["state"], seed=1)(td.clone())["state"]
+    assert not torch.equal(iid, iid[:, :1].expand_as(iid))  # the default: i.i.d. per entry
+    again = StateNoise(0.02, in_keys=["state"], seed=1, shared_dims=(-2,))(td.clone())["state"]
+    torch.testing.assert_close(out, again)
+    assert "shared_dims=(-2,)" in repr(StateNoise(0.1, shared_dims=(-2,)))
+    with pytest.raises(ValueError, match=r"shared dim -3 of \['state'\] of shape \(7, 3\)"):
+        StateNoise(0.1, in_keys=["state"], shared_dims=(-3,))._apply_transform(torch.zeros(7, 3))

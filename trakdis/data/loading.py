@@ -351,14 +351,15 @@ def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float,
 
 def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer, task: str,
                          horizon: int, seed: int, context_len: int, rtg_scale: float = 1.0, min_scale: float = 1e-3,
-                         state_noise: float = 0.0, fill: OutOfViewFill | None = None, early_windows: bool = False,
-                         replacement: str = "oldest", collect_pixels: bool = False, log: Callable[..., None] = print,
+                         state_noise: float = 0.0, state_offset: float = 0.0, fill: OutOfViewFill | None = None,
+                         early_windows: bool = False, replacement: str = "oldest", collect_pixels: bool = False, log: Callable[..., None] = print,
                          progress: bool = True, target_key: str | None = None,
                          extra_capacity: int = 0) -> tuple[TrajectoryReplayBuffer, ObservationNorm | Compose]:
     """``(buffer, normalizer)``: a teacher's replay buffer of the expert dataset's states and actions,
     its sampled windows standardised by ``normalizer`` (TorchRL's ``ObservationNorm`` of ``"state"``,
     :func:`~trakdis.transforms.state_normalizer`; the acting policy's too): with ``state_noise`` > 0, Gaussian noise of that std
-    (seed ``seed + 7919``) on the raw states first; ``fill`` (``--mask-unseen-pickers``) carried by
+    (seed ``seed + 7919``) on the raw states first, and with ``state_offset`` > 0 a Gaussian offset of that std per
+    window, the same at each of its steps (seed ``seed + 7927``); ``fill`` (``--mask-unseen-pickers``) carried by
     the normaliser, which masks the out-of-view pickers before standardising. The data stay raw.
 
     ``state`` is the run's :class:`~trakdis.utils.run.RunState`, holding the counters
@@ -385,9 +386,11 @@ def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer
             trajectories.set(target_key, trajectories.get("action").clone())
     normalizer = normalizer_from_state_dict(state["normalizer"])
     noise = StateNoise(state_noise, in_keys=["state"], seed=seed + 7919) if state_noise > 0 else None
+    offset = (StateNoise(state_offset, in_keys=["state"], seed=seed + 7927, shared_dims=(-2,))
+              if state_offset > 0 else None)  # windows [B, K, D]: one offset per window
     keys = ("state",) if target_key is None else ("state", target_key)
     buffer = make_buffer(state["buffer_capacity"], context_len, horizon, rtg_scale, keys=keys, seed=seed,
-                         transform=Compose(*(t for t in (noise, normalizer) if t is not None)),
+                         transform=Compose(*(t for t in (noise, offset, normalizer) if t is not None)),
                          early_windows=early_windows, replacement=replacement)
     state.objects["buffer"] = buffer
     if not state.resuming:
@@ -404,6 +407,9 @@ class StateBufferConfig:
     state_scale_floor: float = 1e-3  # lower bound (metres) of the state normaliser's per-dimension scale
     train_state_noise: float = 0.0
     """std (m) of Gaussian noise on the training windows' true states (acting: exact)"""
+    train_state_offset: float = 0.0
+    """std (m) of a Gaussian offset of each training window's true states, the same at all its steps: a biased
+    state, as an encoder's estimate of one configuration is (acting: exact)"""
     mask_unseen_pickers: bool = False  # train and act with a picker out of the 32x32 camera view as a fixed sentinel
     rtg_scale: float = 1.0  # return-to-go scale (rewards and targets are multiplied by it)
     buffer_capacity: Optional[int] = None  # trajectories in the replay buffer (default: the dataset's; DAgger: +rollouts)
@@ -414,7 +420,7 @@ class StateBufferConfig:
 
     def __post_init__(self):  # while parsing (tyro), before the run directory exists
         check_options(self, sizes=("buffer_capacity",), positive=("rtg_scale", "state_scale_floor"),
-                      nonnegative=("train_state_noise",))
+                      nonnegative=("train_state_noise", "train_state_offset"))
         parent = getattr(super(), "__post_init__", None)
         if parent is not None:
             parent()
@@ -428,7 +434,7 @@ class StateBufferConfig:
         return offline_state_buffer(
             state, data, phases=phases, task=task, horizon=horizon, seed=seed, context_len=context_len,
             rtg_scale=self.rtg_scale, min_scale=self.state_scale_floor, state_noise=self.train_state_noise,
-            fill=OutOfViewFill.for_task(task) if self.mask_unseen_pickers else None, early_windows=self.early_windows,
+            state_offset=self.train_state_offset, fill=OutOfViewFill.for_task(task) if self.mask_unseen_pickers else None, early_windows=self.early_windows,
             replacement=self.buffer_replacement, collect_pixels=collect_pixels, log=log, progress=progress,
             target_key=target_key, extra_capacity=extra_capacity)
 

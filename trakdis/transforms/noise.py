@@ -28,6 +28,11 @@ class StateNoise(ObservationTransform):
         seed: seeds a private ``torch.Generator`` (CPU) so the noise sequence is reproducible and
             independent of the global RNG; ``None`` uses the global RNG. Note that copies of the
             transform in ``ParallelEnv`` workers start from the same generator state.
+        shared_dims: dims of the perturbed tensor along which one draw is shared (drawn with size 1
+            there and broadcast). ``(-2,)`` on a replay buffer's windows ``[B, K, D]``: one offset per
+            window, the same at its ``K`` steps, a biased state rather than a noisy one (an image
+            encoder errs by a bias per configuration, shared by every view of it). Default: none,
+            i.i.d. per entry. Not for env steps, where the tensor has no time dim.
 
     A bounded input spec becomes unbounded (noise can leave the bounds).
     """
@@ -38,6 +43,7 @@ class StateNoise(ObservationTransform):
         in_keys: Sequence[NestedKey] | None = None,
         out_keys: Sequence[NestedKey] | None = None,
         seed: int | None = None,
+        shared_dims: Sequence[int] = (),
     ):
         if in_keys is None:
             in_keys = ["state_estimate"]
@@ -48,6 +54,7 @@ class StateNoise(ObservationTransform):
         if not sigma >= 0.0:
             raise ValueError(f"StateNoise: sigma must be >= 0, got {sigma}")
         self.sigma = sigma
+        self.shared_dims = tuple(int(d) for d in shared_dims)
         self.seed = seed
         self._generator = None
         self._generator_state = None
@@ -85,11 +92,17 @@ class StateNoise(ObservationTransform):
             raise TypeError(f"StateNoise: {self.in_keys} must be floating point, got {obs.dtype}")
         if self.sigma == 0.0:
             return obs
+        shape = list(obs.shape)
+        for d in self.shared_dims:
+            if not -obs.ndim <= d < obs.ndim:
+                raise ValueError(f"StateNoise: shared dim {d} of {self.in_keys} of shape {tuple(obs.shape)} "
+                                 f"does not exist")
+            shape[d] = 1
         gen = self._get_generator()
         if gen is None:
-            noise = torch.randn(obs.shape, dtype=obs.dtype, device=obs.device)
+            noise = torch.randn(shape, dtype=obs.dtype, device=obs.device)
         else:
-            noise = torch.randn(obs.shape, dtype=obs.dtype, generator=gen).to(obs.device)
+            noise = torch.randn(shape, dtype=obs.dtype, generator=gen).to(obs.device)
         return obs + self.sigma * noise
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
@@ -104,4 +117,5 @@ class StateNoise(ObservationTransform):
         return observation_spec
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(sigma={self.sigma}, in_keys={self.in_keys}, seed={self.seed})"
+        shared = f", shared_dims={self.shared_dims}" if self.shared_dims else ""
+        return f"{type(self).__name__}(sigma={self.sigma}, in_keys={self.in_keys}, seed={self.seed}{shared})"
