@@ -323,7 +323,8 @@ def test_offline_state_buffer_fits_on_a_fresh_run_and_reloads_from_the_checkpoin
                          counters_key="counters")
         state["x"] = 0
         buffer, normalizer = offline_state_buffer(state, DataConfig(), phases=PhaseTimer(), task="ClothFold", horizon=4,
-                                                  seed=0, context_len=2, min_scale=0.5, **(noise or {"state_noise": 0.1}))
+                                                  seed=0, context_len=2, min_scale=0.5,
+                                                  **(noise or {"state_noise": 0.1}))
         state.load()
         return state, buffer, normalizer
 
@@ -415,8 +416,8 @@ def test_state_buffer_config_makes_the_teachers_buffer_with_its_options(monkeypa
     assert fill.starts == OutOfViewFill.for_task("ClothFold").starts
     assert {k: v for k, v in kwargs.items() if k != "log"} == {
         "phases": "phases", "task": "ClothFold", "horizon": 6, "seed": 3, "context_len": 4, "rtg_scale": 2.0,
-        "min_scale": 0.02, "state_noise": 0.01, "state_offset": 0.015, "early_windows": False, "replacement": "oldest", "collect_pixels": True,
-        "progress": False, "target_key": "expert_action", "extra_capacity": 5}
+        "min_scale": 0.02, "state_noise": 0.01, "state_offset": 0.015, "early_windows": False, "replacement": "oldest",
+        "collect_pixels": True, "progress": False, "target_key": "expert_action", "extra_capacity": 5}
     StateBufferConfig().state_buffer("state", "data", phases=None, task="ClothFold", horizon=6, seed=3, context_len=4)
     assert calls[1][2]["fill"] is None and calls[1][2]["target_key"] is None
     assert StateBufferConfig.SAVED_AS == {"state_noise": "train_state_noise"}  # the option's earlier name

@@ -352,8 +352,8 @@ def make_buffer(capacity: int, context_len: int, max_len: int, rtg_scale: float,
 def offline_state_buffer(state: RunState, cfg: DataConfig, *, phases: PhaseTimer, task: str,
                          horizon: int, seed: int, context_len: int, rtg_scale: float = 1.0, min_scale: float = 1e-3,
                          state_noise: float = 0.0, state_offset: float = 0.0, fill: OutOfViewFill | None = None,
-                         early_windows: bool = False, replacement: str = "oldest", collect_pixels: bool = False, log: Callable[..., None] = print,
-                         progress: bool = True, target_key: str | None = None,
+                         early_windows: bool = False, replacement: str = "oldest", collect_pixels: bool = False,
+                         log: Callable[..., None] = print, progress: bool = True, target_key: str | None = None,
                          extra_capacity: int = 0) -> tuple[TrajectoryReplayBuffer, ObservationNorm | Compose]:
     """``(buffer, normalizer)``: a teacher's replay buffer of the expert dataset's states and actions,
     its sampled windows standardised by ``normalizer`` (TorchRL's ``ObservationNorm`` of ``"state"``,
@@ -434,9 +434,9 @@ class StateBufferConfig:
         return offline_state_buffer(
             state, data, phases=phases, task=task, horizon=horizon, seed=seed, context_len=context_len,
             rtg_scale=self.rtg_scale, min_scale=self.state_scale_floor, state_noise=self.train_state_noise,
-            state_offset=self.train_state_offset, fill=OutOfViewFill.for_task(task) if self.mask_unseen_pickers else None, early_windows=self.early_windows,
-            replacement=self.buffer_replacement, collect_pixels=collect_pixels, log=log, progress=progress,
-            target_key=target_key, extra_capacity=extra_capacity)
+            state_offset=self.train_state_offset, fill=OutOfViewFill.for_task(task) if self.mask_unseen_pickers else None,
+            early_windows=self.early_windows, replacement=self.buffer_replacement, collect_pixels=collect_pixels, log=log,
+            progress=progress, target_key=target_key, extra_capacity=extra_capacity)
 
 
 def student_buffer(capacity: int, context_len: int, horizon: int, rtg_scale: float, *,
