@@ -241,6 +241,9 @@ class StudentConfig:
     expert_data: bool = True  # distil on the expert dataset's episodes (--data.*): images through the encoder
     episodes_per_round: int = 0  # episodes rolled out per round into the distillation data (0: the expert data only)
     loss_function: Literal["nll", "mse"] = "nll"  # the student's NLL of the teacher's action (paper), or squared error
+    grasp_labels: Literal["probability", "decision"] = "probability"
+    """with a grasp head, the teacher's grasps as labels: its probabilities (both movement branches, weighted by
+    them) or each step's more likely grasp (the movement of its branch)"""
     return_to_go: Literal["acting", "hindsight"] = "acting"  # rollouts' return-to-go: the acting countdown, or reached
     kl_coef: float = 0.0  # weight of an extra teacher-student KL term (0: the paper's NLL only)
     expert_coef: Optional[float] = None
@@ -309,12 +312,13 @@ class StudentConfig:
     def make_loss(self, student: nn.Module, teacher_actor: nn.Module, *, action_eps: float,
                   expert_coef: float = 0.0) -> nn.Module:
         """The student's loss: :class:`~trakdis.objectives.DistillationLoss` of the frozen ``teacher_actor``'s
-        actions (``--loss-function``, ``--kl-coef``, ``--teacher-context``; ``expert_coef``: the weight of the
+        actions (``--loss-function``, ``--grasp-labels``, ``--kl-coef``, ``--teacher-context``; ``expert_coef``: the weight of the
         expert's own actions beside them), or with ``--no-distill`` :class:`~trakdis.objectives.MaskedOnlineDTLoss`
         of the expert data's actions without the entropy bonus."""
         if self.distill:
             return DistillationLoss(student, teacher_actor, kl_coef=self.kl_coef, loss_function=self.loss_function,
-                                    action_eps=action_eps, teacher_context=self.teacher_context, expert_coef=expert_coef)
+                                    action_eps=action_eps, teacher_context=self.teacher_context, expert_coef=expert_coef,
+                                    grasp_labels=self.grasp_labels)
         return MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=action_eps)
 
     def load_expert_data(self, buffer: TrajectoryReplayBuffer, encoder: nn.Module, teacher: PolicyHandle, *, seed: int,

@@ -217,7 +217,8 @@ def test_distillation_with_a_grasp_head(loss_function, teacher_context):
     student = copy_teacher_weights(make_dt_actor(grasp_config(), observation_key="state_estimate"), teacher)
     td = window()
     td["state_estimate"] = td["state"].clone()
-    loss = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context)
+    loss = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
+                            grasp_labels="decision")
     out = loss(td)
     assert torch.isfinite(out["loss_distill"])
     if teacher_context == "window":  # the copy on the teacher's own inputs agrees with it
@@ -234,6 +235,90 @@ def test_distillation_with_a_grasp_head(loss_function, teacher_context):
         torch.testing.assert_close(out["loss_distill"].detach(), (move + bce).mean())
     with pytest.raises(ValueError, match="kl_coef"):
         DistillationLoss(student, teacher, kl_coef=0.1)(td)
+
+
+@pytest.mark.parametrize("loss_function", ["nll", "mse"])
+def test_soft_imitation_of_a_sure_teacher_is_the_loss_of_its_action(loss_function):
+    # a teacher sure of every grasp: its probabilities are its decisions, the other branch weighs nothing
+    student, teacher = random_dist(4, 3, seed=1), random_dist(4, 3, seed=2)
+    teacher = GraspConditionedTanhNormal(teacher.loc, teacher.scale, teacher.grasp_logits.sign() * 40.0,
+                                         grasp_dims=GRASP)
+    action = teacher.deterministic_sample
+    if loss_function == "nll":
+        expected = -student.log_prob(action.clamp(-1 + 1e-6, 1 - 1e-6))
+    else:
+        expected = ((student.movement_given(action) - action) ** 2 * student.movement_mask).sum(-1) + \
+            torch.nn.functional.binary_cross_entropy_with_logits(
+                student.grasp_logits, (action[..., list(GRASP)] > 0).float(), reduction="none").sum(-1)
+    got = student.soft_imitation_loss(teacher, loss_function=loss_function)
+    assert got.shape == (4, 3)
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-4)
+
+
+def test_soft_imitation_keeps_the_teachers_grasp_probabilities():
+    # an unsure teacher (p 0.3 and 0.8): fitted to its probabilities the student keeps them; fitted to its
+    # more likely grasps (the decision labels) it learns 0 and 1
+    t = random_dist(seed=3)
+    teacher = GraspConditionedTanhNormal(t.loc, t.scale, torch.tensor([0.3, 0.8]).logit(), grasp_dims=GRASP)
+    fitted = {}
+    for labels in ("probability", "decision"):
+        logits = torch.zeros(2, requires_grad=True)
+        opt = torch.optim.Adam([logits], lr=0.1)
+        for _ in range(600):
+            student = GraspConditionedTanhNormal(t.loc, t.scale, logits, grasp_dims=GRASP)
+            loss = (student.soft_imitation_loss(teacher) if labels == "probability"
+                    else -student.log_prob(teacher.deterministic_sample.clamp(-1 + 1e-6, 1 - 1e-6)))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        fitted[labels] = torch.sigmoid(logits.detach())
+    torch.testing.assert_close(fitted["probability"], torch.tensor([0.3, 0.8]), rtol=0, atol=1e-3)
+    assert fitted["decision"][0] < 0.05 and fitted["decision"][1] > 0.95
+
+
+def test_soft_imitation_weighs_each_branch_by_the_teachers_probability():
+    # the movement term of each branch, by hand: p(open) x branch 0's NLL + p(closed) x branch 1's
+    student, teacher = random_dist(seed=4), random_dist(seed=5)
+    got = student.soft_imitation_loss(teacher)
+    p = torch.sigmoid(teacher.grasp_logits)
+    expected = torch.nn.functional.binary_cross_entropy_with_logits(student.grasp_logits, p, reduction="none").sum()
+    for picker, dims in enumerate(([0, 1, 2], [4, 5, 6])):
+        for branch, weight in ((0, 1 - p[picker]), (1, p[picker])):
+            target = torch.tanh(teacher.loc[branch, dims]).clamp(-1 + 1e-6, 1 - 1e-6)
+            nll = -TanhNormal(student.loc[branch, dims], student.scale[branch, dims], low=-1.0,
+                              high=1.0).log_prob(target)
+            expected = expected + weight * nll
+    torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-3)
+    with pytest.raises(ValueError, match="loss_function"):
+        student.soft_imitation_loss(teacher, loss_function="kl")
+    with pytest.raises(ValueError, match="do not match"):
+        student.soft_imitation_loss(random_dist(2))
+
+
+@pytest.mark.parametrize("loss_function", ["nll", "mse"])
+@pytest.mark.parametrize("teacher_context", ["window", "step"])
+def test_distillation_grasp_labels(loss_function, teacher_context):
+    torch.manual_seed(0)
+    teacher = make_dt_actor(grasp_config(), observation_key="state")
+    student = copy_teacher_weights(make_dt_actor(grasp_config(), observation_key="state_estimate"), teacher)
+    td = window()
+    td["state_estimate"] = td["state"] + 0.3 * torch.randn_like(td["state"])
+    soft = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context)
+    hard = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
+                            grasp_labels="decision")
+    assert soft.grasp_labels == "probability"  # the default
+    with torch.no_grad():
+        _, t_loc, t_scale, t_logits = soft.teacher_dist(td)
+        s = student.get_dist(td.select(*student.in_keys))
+        t = GraspConditionedTanhNormal(t_loc, t_scale, t_logits, grasp_dims=GRASP)
+        expected = s.soft_imitation_loss(t, loss_function=loss_function).mean()
+    out = soft(td)
+    torch.testing.assert_close(out["loss_distill"].detach(), expected)
+    assert not torch.allclose(out["loss_distill"], hard(td)["loss_distill"])  # an unsure teacher's labels differ
+    out["loss_distill"].backward()
+    assert student.module[0].module.head_grasp.weight.grad is not None
+    with pytest.raises(ValueError, match="grasp_labels"):
+        DistillationLoss(student, teacher, grasp_labels="soft")
 
 
 def test_a_saved_teacher_with_a_grasp_head_loads_with_it(tmp_path):

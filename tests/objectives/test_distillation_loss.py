@@ -44,6 +44,16 @@ def test_loss_is_student_nll_of_teacher_mean_action(actors):
     torch.testing.assert_close(DistillationLoss(student, teacher)(td2)["loss_distill"], out["loss_distill"], rtol=0, atol=1e-5)
 
 
+@pytest.mark.parametrize("loss_function", ["nll", "mse"])
+def test_grasp_labels_leave_a_policy_without_grasp_head_unchanged(actors, loss_function):
+    student, teacher = actors
+    td = window()
+    losses = [DistillationLoss(student, teacher, loss_function=loss_function, grasp_labels=g)(td.clone())["loss_distill"]
+              for g in ("probability", "decision")]
+    torch.testing.assert_close(losses[0], losses[1], rtol=0, atol=0)
+    assert DistillationLoss(student, teacher).teacher_dist(td.clone())[3] is None
+
+
 @pytest.mark.parametrize("direction", ["teacher_student", "student_teacher"])
 def test_gradients_reach_only_the_student(actors, direction):
     student, teacher = actors

@@ -171,6 +171,38 @@ class GraspConditionedTanhNormal(D.Distribution):
         movement = ((1 - p_closed) * per_dim[..., 0, :] + p_closed * per_dim[..., 1, :]).sum(-1)
         return self.grasp_entropy() + movement
 
+    def branch_probs(self) -> torch.Tensor:
+        """``[*B, 2, A]``: for each dim, the probability of its picker's open (0) and closed (1) branch."""
+        p_closed = torch.sigmoid(self.grasp_logits).index_select(-1, self._picker)  # [*B, A]
+        return torch.stack((1 - p_closed, p_closed), dim=-2)
+
+    def soft_imitation_loss(self, teacher: "GraspConditionedTanhNormal", *, loss_function: str = "nll",
+                            eps: float = 1e-6) -> torch.Tensor:
+        """``[*B]``: this policy imitating ``teacher``'s grasp probabilities and both of its movement branches.
+
+        The grasps: the cross-entropy of the teacher's Bernoullis (binary cross-entropy on its probabilities, not
+        on its more likely grasp), minimal where this policy's probabilities equal the teacher's. The movement:
+        in each branch, ``loss_function="nll"`` this policy's negative log-density of the teacher's deterministic
+        movement of that branch (clamped to ``[-1 + eps, 1 - eps]``), ``"mse"`` the squared error of the two
+        deterministic movements; each branch weighted by the teacher's probability of it. Where the teacher is
+        sure of a grasp (probability 0 or 1) this is the loss of its deterministic action, term for term.
+        """
+        if teacher.loc.shape != self.loc.shape or teacher.grasp_dims != self.grasp_dims:
+            raise ValueError(f"teacher loc {tuple(teacher.loc.shape)}, grasp_dims {teacher.grasp_dims} do not match "
+                             f"this policy's {tuple(self.loc.shape)}, {self.grasp_dims}")
+        grasp = F.binary_cross_entropy_with_logits(self.grasp_logits, torch.sigmoid(teacher.grasp_logits),
+                                                   reduction="none").sum(-1)
+        target = torch.tanh(teacher.loc)
+        if loss_function == "nll":
+            x = target.clamp(-1.0 + eps, 1.0 - eps).atanh()
+            per_dim = tanh_log_det(x) - normal_log_prob(x, self.loc, self.scale, self.scale.log())
+        elif loss_function == "mse":
+            per_dim = (torch.tanh(self.loc) - target).pow(2)
+        else:
+            raise ValueError(f"loss_function={loss_function!r}; expected 'nll' or 'mse'")
+        weighted = teacher.branch_probs() * per_dim * self.movement_mask.to(per_dim.dtype)
+        return grasp + weighted.sum((-2, -1))
+
     def movement_given(self, value: torch.Tensor) -> torch.Tensor:
         """The deterministic movement ``tanh(loc)`` ``[*B, A]`` in the branches of ``value``'s grasps
         (grasp dims hold ``value``'s commands): the action this policy takes if it grasps as ``value``

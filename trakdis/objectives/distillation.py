@@ -17,6 +17,7 @@ __all__ = ["DistillationLoss"]
 _KL_DIRECTIONS = ("teacher_student", "student_teacher")
 _LOSS_FUNCTIONS = ("nll", "mse")
 _TEACHER_CONTEXTS = ("window", "step")
+_GRASP_LABELS = ("probability", "decision")
 
 
 class DistillationLoss(LossModule):
@@ -53,9 +54,12 @@ class DistillationLoss(LossModule):
       (Hinton et al., 2015). Only meaningful where the window's actions are the expert's.
     * with a grasp head (:class:`~trakdis.modules.GraspConditionedTanhNormal`): ``"nll"`` scores the teacher's
       action under the student (its grasps as Bernoulli labels, the movement in the teacher's grasp branches);
-      ``"mse"`` is the movement's squared error in the teacher's branches plus the grasps' cross-entropy. The
-      teacher's grasp labels are each step's more likely grasp (``deterministic_sample``), not the switch-time
-      rule it acts by (:class:`~trakdis.modules.DTActingPolicy`); ``kl_coef > 0`` is refused.
+      ``"mse"`` is the movement's squared error in the teacher's branches plus the grasps' cross-entropy;
+      ``kl_coef > 0`` is refused. ``grasp_labels="probability"``: the grasp labels are the teacher's
+      probabilities and the movement is imitated in both branches, each weighted by the teacher's probability of
+      it (:meth:`~trakdis.modules.GraspConditionedTanhNormal.soft_imitation_loss`), so that the student keeps
+      the probabilities that :class:`~trakdis.modules.DTActingPolicy`'s switch-time rule acts on;
+      ``"decision"``: each step's more likely grasp (``deterministic_sample``) and the movement of its branch.
     * metric ``teacher_student_mse``: masked mean squared difference of the deterministic actions.
 
     The teacher is evaluated in eval mode (no dropout) whatever its ``training`` flag, so its
@@ -72,6 +76,7 @@ class DistillationLoss(LossModule):
         action_eps: clamp of the teacher's actions away from +-1.
         teacher_context: ``"window"`` or ``"step"`` (see above).
         expert_coef: weight of ``loss_expert`` (0 disables it; see above).
+        grasp_labels: ``"probability"`` or ``"decision"``, with a grasp head (see above).
     """
 
     @dataclass
@@ -103,12 +108,15 @@ class DistillationLoss(LossModule):
         action_eps: float = 1e-6,
         teacher_context: str = "window",
         expert_coef: float = 0.0,
+        grasp_labels: str = "probability",
     ) -> None:
         super().__init__()
         if teacher_context not in _TEACHER_CONTEXTS:
             raise ValueError(f"teacher_context={teacher_context!r}; expected one of {_TEACHER_CONTEXTS}")
         if loss_function not in _LOSS_FUNCTIONS:
             raise ValueError(f"loss_function={loss_function!r}; expected one of {_LOSS_FUNCTIONS}")
+        if grasp_labels not in _GRASP_LABELS:
+            raise ValueError(f"grasp_labels={grasp_labels!r}; expected one of {_GRASP_LABELS}")
         if kl_direction not in _KL_DIRECTIONS:
             raise ValueError(f"kl_direction={kl_direction!r}; expected one of {_KL_DIRECTIONS}")
         if kl_coef < 0:
@@ -129,6 +137,7 @@ class DistillationLoss(LossModule):
         self.action_eps = float(action_eps)
         self.teacher_context = teacher_context
         self.expert_coef = float(expert_coef)
+        self.grasp_labels = grasp_labels
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -148,9 +157,10 @@ class DistillationLoss(LossModule):
     def teacher_dist(self, tensordict: TensorDictBase):
         """The teacher's per-step distribution, always computed in eval mode (no dropout).
 
-        Returns ``(action, loc, scale)``: the deterministic action and the pre-tanh Gaussian's
-        parameters, each ``[*B, K, action_dim]`` (with a grasp head ``loc``/``scale`` are
-        ``[*B, K, 2, action_dim]``, the open and closed branches).
+        Returns ``(action, loc, scale, grasp_logits)``: the deterministic action and the pre-tanh
+        Gaussian's parameters, each ``[*B, K, action_dim]``, and ``None``; with a grasp head
+        ``loc``/``scale`` are ``[*B, K, 2, action_dim]`` (the open and closed branches) and
+        ``grasp_logits`` ``[*B, K, P]``.
         """
         teacher = self.teacher_network
         td = tensordict.copy()
@@ -167,11 +177,11 @@ class DistillationLoss(LossModule):
         finally:
             teacher.train(was_training)
         if hasattr(dist, "root_dist"):
-            out = (dist.deterministic_sample, dist.root_dist.loc, dist.root_dist.scale)
+            out = (dist.deterministic_sample, dist.root_dist.loc, dist.root_dist.scale, None)
         else:  # the grasp head (GraspConditionedTanhNormal): its branches' parameters
-            out = (dist.deterministic_sample, dist.loc, dist.scale)
+            out = (dist.deterministic_sample, dist.loc, dist.scale, dist.grasp_logits)
         if self.teacher_context == "step":
-            out = tuple(x.squeeze(len(td.batch_size) - 1) for x in out)
+            out = tuple(None if x is None else x.squeeze(len(td.batch_size) - 1) for x in out)
         return out
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -179,10 +189,13 @@ class DistillationLoss(LossModule):
         with self.student_network_params.to_module(self.student_network):
             s_dist = self.student_network.get_dist(student_td)
         with torch.no_grad():
-            t_action, t_loc, t_scale = self.teacher_dist(tensordict)
+            t_action, t_loc, t_scale, t_logits = self.teacher_dist(tensordict)
         s_action = s_dist.deterministic_sample
         grasp_head = hasattr(s_dist, "movement_given")
-        if self.loss_function == "nll":
+        if grasp_head and self.grasp_labels == "probability":
+            teacher = type(s_dist)(t_loc, t_scale, t_logits, grasp_dims=s_dist.grasp_dims)
+            per_step = s_dist.soft_imitation_loss(teacher, loss_function=self.loss_function, eps=self.action_eps)
+        elif self.loss_function == "nll":
             per_step = -s_dist.log_prob(clamp_action(t_action, self.action_eps))
         elif grasp_head:  # movement in the teacher's grasp branches, plus the grasps' cross-entropy
             per_step = ((s_dist.movement_given(t_action) - t_action).pow(2) * s_dist.movement_mask).sum(-1) + \
