@@ -209,12 +209,17 @@ def test_acting_equals_the_training_forward(mode):
     assert sampled.shape == (2, A)
 
 
+def copied_student():
+    """A grasp-head teacher (seed 0) and its weight-copied student, which reads ``"state_estimate"``."""
+    torch.manual_seed(0)
+    teacher = make_dt_actor(grasp_config(), observation_key="state")
+    return copy_teacher_weights(make_dt_actor(grasp_config(), observation_key="state_estimate"), teacher), teacher
+
+
 @pytest.mark.parametrize("loss_function", ["nll", "mse"])
 @pytest.mark.parametrize("teacher_context", ["window", "step"])
 def test_distillation_with_a_grasp_head(loss_function, teacher_context):
-    torch.manual_seed(0)
-    teacher = make_dt_actor(grasp_config(), observation_key="state")
-    student = copy_teacher_weights(make_dt_actor(grasp_config(), observation_key="state_estimate"), teacher)
+    student, teacher = copied_student()
     td = window()
     td["state_estimate"] = td["state"].clone()
     loss = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
@@ -298,9 +303,7 @@ def test_soft_imitation_weighs_each_branch_by_the_teachers_probability():
 @pytest.mark.parametrize("loss_function", ["nll", "mse"])
 @pytest.mark.parametrize("teacher_context", ["window", "step"])
 def test_distillation_grasp_labels(loss_function, teacher_context):
-    torch.manual_seed(0)
-    teacher = make_dt_actor(grasp_config(), observation_key="state")
-    student = copy_teacher_weights(make_dt_actor(grasp_config(), observation_key="state_estimate"), teacher)
+    student, teacher = copied_student()
     td = window()
     td["state_estimate"] = td["state"] + 0.3 * torch.randn_like(td["state"])
     soft = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context)
