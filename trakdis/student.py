@@ -312,13 +312,13 @@ class StudentConfig:
     def make_loss(self, student: nn.Module, teacher_actor: nn.Module, *, action_eps: float,
                   expert_coef: float = 0.0) -> nn.Module:
         """The student's loss: :class:`~trakdis.objectives.DistillationLoss` of the frozen ``teacher_actor``'s
-        actions (``--loss-function``, ``--grasp-labels``, ``--kl-coef``, ``--teacher-context``; ``expert_coef``: the weight of the
-        expert's own actions beside them), or with ``--no-distill`` :class:`~trakdis.objectives.MaskedOnlineDTLoss`
-        of the expert data's actions without the entropy bonus."""
+        actions (``--loss-function``, ``--grasp-labels``, ``--kl-coef``, ``--teacher-context``; ``expert_coef``: the
+        weight of the expert's own actions beside them), or with ``--no-distill``
+        :class:`~trakdis.objectives.MaskedOnlineDTLoss` of the expert data's actions without the entropy bonus."""
         if self.distill:
             return DistillationLoss(student, teacher_actor, kl_coef=self.kl_coef, loss_function=self.loss_function,
-                                    action_eps=action_eps, teacher_context=self.teacher_context, expert_coef=expert_coef,
-                                    grasp_labels=self.grasp_labels)
+                                    action_eps=action_eps, teacher_context=self.teacher_context,
+                                    expert_coef=expert_coef, grasp_labels=self.grasp_labels)
         return MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=action_eps)
 
     def load_expert_data(self, buffer: TrajectoryReplayBuffer, encoder: nn.Module, teacher: PolicyHandle, *, seed: int,

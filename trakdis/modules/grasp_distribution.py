@@ -167,13 +167,17 @@ class GraspConditionedTanhNormal(D.Distribution):
         x = self.loc + eps * self.scale  # [n, *B, 2, A]
         log_p = (-(eps**2) / 2 - self.scale.log() - _LOG_SQRT_2PI) - tanh_log_det(x)  # the Normal's at loc + eps scale
         per_dim = -log_p.mean(0) * self.movement_mask.to(log_p.dtype)  # [*B, 2, A]
-        p_closed = torch.sigmoid(self.grasp_logits).index_select(-1, self._picker)  # [*B, A]
+        p_closed = self._p_closed_per_dim()
         movement = ((1 - p_closed) * per_dim[..., 0, :] + p_closed * per_dim[..., 1, :]).sum(-1)
         return self.grasp_entropy() + movement
 
+    def _p_closed_per_dim(self) -> torch.Tensor:
+        """``[*B, A]``: for each dim, the probability that its picker closes."""
+        return torch.sigmoid(self.grasp_logits).index_select(-1, self._picker)
+
     def branch_probs(self) -> torch.Tensor:
         """``[*B, 2, A]``: for each dim, the probability of its picker's open (0) and closed (1) branch."""
-        p_closed = torch.sigmoid(self.grasp_logits).index_select(-1, self._picker)  # [*B, A]
+        p_closed = self._p_closed_per_dim()
         return torch.stack((1 - p_closed, p_closed), dim=-2)
 
     def soft_imitation_loss(self, teacher: "GraspConditionedTanhNormal", *, loss_function: str = "nll",
