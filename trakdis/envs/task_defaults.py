@@ -38,7 +38,8 @@ class TaskDefaults:
         grasp_head: the method's teacher (and so its student, a copy of it) models the grasp with the grasp head
             (``--model.grasp-head``: a Bernoulli grasp and the movement of its branch; without it a pinned-fold
             teacher trained on noisy states lifts the open picker while unsure whether to close and collapses
-            on some seeds; docs/recipes/online_dt.md).
+            on some seeds; on ClothFold and the unpinned fold it releases late and is not the default there;
+            docs/recipes/online_dt.md).
         close_radius: the expert data's grasp-close radius (``--data.close-radius``) of every stage of the
             method, ``None`` for the data's default (a policy acting on blurred states closes about 1.5 cm
             farther out than its demonstrations, beyond ClothFold's reach from 2 cm; docs/recipes/pipeline.md).
