@@ -35,6 +35,11 @@ def tanh_log_det(x):
     return 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x))
 
 
+def _tanh_normal_log_prob_per_dim(x, loc, scale):
+    """Elementwise log-density of ``tanh(Normal(loc, scale))`` at ``tanh(x)``, from the pre-tanh ``x``."""
+    return normal_log_prob(x, loc, scale, scale.log()) - tanh_log_det(x)
+
+
 def picker_of_dims(action_dim: int, grasp_dims: tuple[int, ...]) -> tuple[int, ...]:
     """For each action dim, the index of the grasp command (picker) that conditions it: the dims up to
     and including ``grasp_dims[0]`` belong to picker 0, those after it up to ``grasp_dims[1]`` to
@@ -151,7 +156,7 @@ class GraspConditionedTanhNormal(D.Distribution):
         loc, scale = self.branch(closed)
         eps = torch.finfo(value.dtype).resolution
         x = value.clamp(-(1.0 - eps), 1.0 - eps).atanh()
-        per_dim = normal_log_prob(x, loc, scale, scale.log()) - tanh_log_det(x)
+        per_dim = _tanh_normal_log_prob_per_dim(x, loc, scale)
         return log_grasp + (per_dim * self.movement_mask.to(per_dim.dtype)).sum(-1)
 
     def grasp_entropy(self) -> torch.Tensor:
@@ -199,7 +204,7 @@ class GraspConditionedTanhNormal(D.Distribution):
         target = torch.tanh(teacher.loc)
         if loss_function == "nll":
             x = target.clamp(-1.0 + eps, 1.0 - eps).atanh()
-            per_dim = tanh_log_det(x) - normal_log_prob(x, self.loc, self.scale, self.scale.log())
+            per_dim = -_tanh_normal_log_prob_per_dim(x, self.loc, self.scale)
         elif loss_function == "mse":
             per_dim = (torch.tanh(self.loc) - target).pow(2)
         else:
