@@ -193,7 +193,7 @@ def test_student_config_derived_options():
 
 def test_student_config_makes_the_student_its_loss_and_the_acting_policies(tmp_path):
     from trakdis.modules import find_dt_actor
-    from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
+    from trakdis.objectives import DTDistillationLoss, MaskedOnlineDTLoss
     from trakdis.student import StudentConfig
 
     teacher, encoder = tiny_teacher_and_encoder(tmp_path, horizon=2)
@@ -204,7 +204,7 @@ def test_student_config_makes_the_student_its_loss_and_the_acting_policies(tmp_p
     for a, b in zip(teacher.actor.parameters(), student.actor.parameters()):  # --weight-copy
         assert torch.equal(a, b)
     loss = cfg.make_loss(student.actor, teacher.actor, action_eps=dt_cfg.action_eps, expert_coef=0.0)
-    assert isinstance(loss, DistillationLoss)
+    assert isinstance(loss, DTDistillationLoss)
     no_distill = StudentConfig(distill=False, expert_data=True)
     assert type(no_distill.make_loss(student.actor, teacher.actor, action_eps=dt_cfg.action_eps)) is MaskedOnlineDTLoss
     teacher_acting, student_acting = cfg.acting_policies(teacher, student, encoder)

@@ -119,7 +119,7 @@ class Updater:
 
     Every ``loss_*`` entry of the loss output is summed and back-propagated; other scalar
     entries are reported as metrics. ``params`` defaults to the loss module's parameters (for a
-    :class:`~trakdis.objectives.DistillationLoss` these are the student's only).
+    :class:`~trakdis.objectives.DTDistillationLoss` these are the student's only).
     """
 
     def __init__(self, loss_module: torch.nn.Module, *, optimizer: str = "adamw", lr: float = 1e-3,

@@ -30,7 +30,7 @@ from trakdis.data import DataConfig, TrajectoryReplayBuffer, load_encoded_datase
 from trakdis.envs import close_env, task_defaults, task_spec
 from trakdis.evaluation import CollectorName, EpisodeStream, episode_score, race_survivors, run_episodes
 from trakdis.modules import NormalizedEncoder, copy_teacher_weights, find_dt_actor, make_dt_actor
-from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
+from trakdis.objectives import DTDistillationLoss, MaskedOnlineDTLoss
 from trakdis.policies import PolicyHandle, load_encoder, load_teacher
 from trakdis.training import SnapshotSelection, mixture_shares
 from trakdis.transforms import PickerOdometry
@@ -311,12 +311,12 @@ class StudentConfig:
 
     def make_loss(self, student: nn.Module, teacher_actor: nn.Module, *, action_eps: float,
                   expert_coef: float = 0.0) -> nn.Module:
-        """The student's loss: :class:`~trakdis.objectives.DistillationLoss` of the frozen ``teacher_actor``'s
+        """The student's loss: :class:`~trakdis.objectives.DTDistillationLoss` of the frozen ``teacher_actor``'s
         actions (``--loss-function``, ``--grasp-labels``, ``--kl-coef``, ``--teacher-context``; ``expert_coef``: the
         weight of the expert's own actions beside them), or with ``--no-distill``
         :class:`~trakdis.objectives.MaskedOnlineDTLoss` of the expert data's actions without the entropy bonus."""
         if self.distill:
-            return DistillationLoss(student, teacher_actor, kl_coef=self.kl_coef, loss_function=self.loss_function,
+            return DTDistillationLoss(student, teacher_actor, kl_coef=self.kl_coef, loss_function=self.loss_function,
                                     action_eps=action_eps, teacher_context=self.teacher_context,
                                     expert_coef=expert_coef, grasp_labels=self.grasp_labels)
         return MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=action_eps)

@@ -9,7 +9,7 @@ from torchrl.modules import TanhNormal
 
 from trakdis.modules import (DTActingPolicy, DTModelConfig, GraspConditionedTanhNormal, copy_teacher_weights,
                              make_dt_actor, picker_of_dims)
-from trakdis.objectives import DistillationLoss, MaskedOnlineDTLoss
+from trakdis.objectives import DTDistillationLoss, MaskedOnlineDTLoss
 
 A, GRASP = 8, (3, 7)  # two pickers: (dx, dy, dz, pick) each
 
@@ -222,7 +222,7 @@ def test_distillation_with_a_grasp_head(loss_function, teacher_context):
     student, teacher = copied_student()
     td = window()
     td["state_estimate"] = td["state"].clone()
-    loss = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
+    loss = DTDistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
                             grasp_labels="decision")
     out = loss(td)
     assert torch.isfinite(out["loss_distill"])
@@ -239,7 +239,7 @@ def test_distillation_with_a_grasp_head(loss_function, teacher_context):
                 s.grasp_logits, (t_action[..., list(GRASP)] > 0).float(), reduction="none").sum(-1)
         torch.testing.assert_close(out["loss_distill"].detach(), (move + bce).mean())
     with pytest.raises(ValueError, match="kl_coef"):
-        DistillationLoss(student, teacher, kl_coef=0.1)(td)
+        DTDistillationLoss(student, teacher, kl_coef=0.1)(td)
 
 
 @pytest.mark.parametrize("loss_function", ["nll", "mse"])
@@ -306,8 +306,8 @@ def test_distillation_grasp_labels(loss_function, teacher_context):
     student, teacher = copied_student()
     td = window()
     td["state_estimate"] = td["state"] + 0.3 * torch.randn_like(td["state"])
-    soft = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context)
-    hard = DistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
+    soft = DTDistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context)
+    hard = DTDistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
                             grasp_labels="decision")
     assert soft.grasp_labels == "probability"  # the default
     with torch.no_grad():
@@ -321,7 +321,7 @@ def test_distillation_grasp_labels(loss_function, teacher_context):
     out["loss_distill"].backward()
     assert student.module[0].module.head_grasp.weight.grad is not None
     with pytest.raises(ValueError, match="grasp_labels"):
-        DistillationLoss(student, teacher, grasp_labels="soft")
+        DTDistillationLoss(student, teacher, grasp_labels="soft")
 
 
 def test_a_saved_teacher_with_a_grasp_head_loads_with_it(tmp_path):

@@ -12,7 +12,7 @@ from torchrl.objectives import LossModule
 
 from trakdis.objectives.dt_loss import clamp_action, get_mask, masked_mean
 
-__all__ = ["DistillationLoss"]
+__all__ = ["DTDistillationLoss"]
 
 _KL_DIRECTIONS = ("teacher_student", "student_teacher")
 _LOSS_FUNCTIONS = ("nll", "mse")
@@ -20,7 +20,7 @@ _TEACHER_CONTEXTS = ("window", "step")
 _GRASP_LABELS = ("probability", "decision")
 
 
-class DistillationLoss(LossModule):
+class DTDistillationLoss(LossModule):
     r"""TraKDis distillation: student NLL of the frozen teacher's actions on the same windows.
 
     The teacher reads its own observation key (the privileged ``"state"``), the student its own
@@ -203,10 +203,10 @@ class DistillationLoss(LossModule):
                                                    reduction="none").sum(-1)
         else:
             per_step = (s_action - t_action).pow(2).sum(-1)
-        mask = get_mask(tensordict, self.tensor_keys.mask, per_step, "DistillationLoss")
+        mask = get_mask(tensordict, self.tensor_keys.mask, per_step, "DTDistillationLoss")
         out = {"loss_distill": masked_mean(per_step, mask)}
         if self.kl_coef > 0 and grasp_head:
-            raise ValueError("DistillationLoss: kl_coef > 0 needs TanhNormal actors; the grasp head's KL is not implemented")
+            raise ValueError("DTDistillationLoss: kl_coef > 0 needs TanhNormal actors; the grasp head's KL is not implemented")
         if self.kl_coef > 0:
             # KL is invariant under a bijection applied to both distributions, and both are the
             # same tanh of a diagonal Gaussian: the KL of the TanhNormals is exactly the
