@@ -317,8 +317,8 @@ class StudentConfig:
         :class:`~trakdis.objectives.MaskedOnlineDTLoss` of the expert data's actions without the entropy bonus."""
         if self.distill:
             return DTDistillationLoss(student, teacher_actor, kl_coef=self.kl_coef, loss_function=self.loss_function,
-                                    action_eps=action_eps, teacher_context=self.teacher_context,
-                                    expert_coef=expert_coef, grasp_labels=self.grasp_labels)
+                                      action_eps=action_eps, teacher_context=self.teacher_context,
+                                      expert_coef=expert_coef, grasp_labels=self.grasp_labels)
         return MaskedOnlineDTLoss(student, lambda_entropy=0.0, action_eps=action_eps)
 
     def load_expert_data(self, buffer: TrajectoryReplayBuffer, encoder: nn.Module, teacher: PolicyHandle, *, seed: int,

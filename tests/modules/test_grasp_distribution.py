@@ -223,7 +223,7 @@ def test_distillation_with_a_grasp_head(loss_function, teacher_context):
     td = window()
     td["state_estimate"] = td["state"].clone()
     loss = DTDistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
-                            grasp_labels="decision")
+                              grasp_labels="decision")
     out = loss(td)
     assert torch.isfinite(out["loss_distill"])
     if teacher_context == "window":  # the copy on the teacher's own inputs agrees with it
@@ -308,7 +308,7 @@ def test_distillation_grasp_labels(loss_function, teacher_context):
     td["state_estimate"] = td["state"] + 0.3 * torch.randn_like(td["state"])
     soft = DTDistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context)
     hard = DTDistillationLoss(student, teacher, loss_function=loss_function, teacher_context=teacher_context,
-                            grasp_labels="decision")
+                              grasp_labels="decision")
     assert soft.grasp_labels == "probability"  # the default
     with torch.no_grad():
         _, t_loc, t_scale, t_logits = soft.teacher_dist(td)
