@@ -75,7 +75,9 @@ def main(argv=None) -> dict:
     run.print(f"{task}: teacher {teacher.source}, encoder {enc_path} (val MAE {enc_file.get('val_mae', float('nan')):.4f}), "
               f"weight copy {cfg.weight_copy}, {'distillation' if cfg.distill else 'expert imitation (--no-distill)'}"
               + (f", the expert's actions beside the teacher's (--expert-coef {expert_coef:g})" if expert_coef else "")
-              + (", picker odometry" if cfg.odometry else ""))
+              + (", picker odometry" if cfg.odometry else "")
+              + (f" holding the corner closed on within {100 * student_handle.hold_radius:g} cm"
+                 if student_handle.hold_radius else ""))
     loss = cfg.make_loss(student, teacher.actor, action_eps=dt_cfg.action_eps, expert_coef=expert_coef)
     updater = cfg.make_updater(loss, decay_steps=cfg.rounds * cfg.updates_per_round,
                                min_lr_fraction=cfg.min_lr_fraction)
@@ -122,6 +124,7 @@ def main(argv=None) -> dict:
                         extra={"teacher": teacher.source, "weight_copy": cfg.weight_copy, "distill": cfg.distill,
                                "estimate_noise": cfg.estimate_noise, "expert_coef": expert_coef,
                                "proprio_dims": list(student_handle.proprio_dims), "picker_odometry": cfg.odometry,
+                               "hold_radius": student_handle.hold_radius,
                                "select_episodes": select_episodes, **selection.summary()})
     state.finish()
     run.print(evaluations.report())

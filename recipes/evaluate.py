@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar, Literal, Optional
 
 import pandas as pd
@@ -53,6 +53,9 @@ class EvaluateConfig(RunConfig):
     """action noise of the scripted expert"""
     target_return: Optional[float] = None
     """initial return-to-go of a DT policy (default: the one saved with it)"""
+    hold_radius: Optional[float] = None
+    """a student's held-corner radius in metres (PickerOdometry; default: the one saved with it, 0: off); needs a
+    student with picker odometry"""
     num_envs: int = 2
     """environments stepped together (batched rollouts)"""
     parallel: bool = False
@@ -88,6 +91,8 @@ class EvaluateConfig(RunConfig):
                              f"noise level 0 only (got {list(self.noise_levels)})")
         if self.horizon is not None:
             check_option("horizon", self.horizon, le=MAX_HORIZON, integer=True)
+        if self.hold_radius is not None and not 0 <= self.hold_radius < 1:  # also NaN
+            raise ValueError(f"--hold-radius {self.hold_radius}: a distance in metres, in [0, 1)")
         super().__post_init__()
 
 
@@ -96,6 +101,10 @@ def main(argv=None) -> pd.DataFrame:
     cfg = run.cfg
     handle = load_policy(cfg.policy, task=cfg.task, horizon=cfg.horizon, expert_noise=cfg.expert_noise, device=cfg.device,
                          max_params=cfg.max_params)
+    if cfg.hold_radius is not None:  # the held corner is part of the picker odometry (trakdis.transforms)
+        if not (handle.picker_odometry and handle.encoder is not None):
+            raise SystemExit(f"--hold-radius {cfg.hold_radius}: {cfg.policy} is no student with picker odometry")
+        handle = replace(handle, hold_radius=cfg.hold_radius)
     # no env without an episode (of the whole evaluation, for a part of one: the same envs play the same episodes)
     num_envs = cap_workers(cfg.num_envs, cfg.first_episode + cfg.trials, unit="trials", warn=run.print)
     spec = task_spec(handle.task, horizon=handle.horizon)

@@ -57,7 +57,8 @@ __all__ = [
 
 def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_copy: bool = True,
                           normalizer_keys: tuple[str, ...] = ("state_estimate",), proprio_dims: tuple = (),
-                          picker_odometry: bool = False, device: str = "cpu") -> tuple[PolicyHandle, Any]:
+                          picker_odometry: bool = False, hold_radius: float = 0.0,
+                          device: str = "cpu") -> tuple[PolicyHandle, Any]:
     """The TraKDis student of a loaded ``teacher`` and its :class:`~trakdis.modules.DTModelConfig`.
 
     A DT of the teacher's sizes reading ``"state_estimate"`` (``encoder``'s estimate from the
@@ -65,7 +66,7 @@ def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_c
     else fresh weights), acting with the teacher's return-to-go, env options and state statistics
     (a normaliser of ``normalizer_keys``); ``proprio_dims``: dims of the estimate taken from the
     true state when acting; ``picker_odometry``: the estimate's pickers fused with the student's own
-    commands (``PickerOdometry``) when acting."""
+    commands (``PickerOdometry``) when acting, with ``hold_radius`` its held corner."""
     dt_cfg = find_dt_actor(teacher.actor).config  # the sizes the teacher's file was checked and built with
     student = make_dt_actor(dt_cfg, observation_key="state_estimate", device=device)
     if weight_copy:
@@ -75,7 +76,8 @@ def weight_copied_student(teacher: PolicyHandle, encoder: nn.Module, *, weight_c
                           observation_key="state_estimate", target_return=teacher.target_return,
                           rtg_scale=teacher.rtg_scale, env_kwargs=teacher.env_kwargs,
                           normalizer=None if norm is None else normalizer_with_keys(norm, normalizer_keys),
-                          proprio_dims=tuple(proprio_dims), picker_odometry=picker_odometry)
+                          proprio_dims=tuple(proprio_dims), picker_odometry=picker_odometry,
+                          hold_radius=hold_radius if picker_odometry else 0.0)
     return handle, dt_cfg
 
 
@@ -236,6 +238,10 @@ class StudentConfig:
     picker_odometry: Literal["auto", "on", "off"] = "auto"
     """the encoder's picker estimates fused with the student's own commands (no proprioception); auto: on if the data's
     actions are the executed ones (measured on the three tasks over 3 seeds each: docs/recipes/distill.md)"""
+    hold_radius: Optional[float] = None
+    """with the picker odometry: a close within this distance (metres) of the source corner, as estimated, holds the
+    corner's estimate at the picker's while it stays closed (PickerOdometry; default: per task, as measured in
+    docs/recipes/distill.md; 0: off)"""
     act: Literal["student", "teacher", "mixed"] = "teacher"  # who acts in the rollouts (student: DAgger; mixed: decaying)
     teacher_context: Literal["window", "step"] = "window"  # what the teacher reads to label a step: window or step alone
     expert_data: bool = True  # distil on the expert dataset's episodes (--data.*): images through the encoder
@@ -265,6 +271,12 @@ class StudentConfig:
             raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
                              f"{self.data.action_labels!r} needs 'executed'")
         check_options(self, nonnegative=("estimate_noise", "kl_coef"))
+        if self.hold_radius is not None and not 0 <= self.hold_radius < 1:  # also NaN
+            raise ValueError(f"--hold-radius {self.hold_radius}: a distance in metres, in [0, 1)")
+        if self.hold_radius and not self.odometry:
+            raise ValueError(f"--hold-radius {self.hold_radius}: the held corner is part of the picker odometry, "
+                             f"which is off here (--picker-odometry {self.picker_odometry}"
+                             f"{', --proprio-pickers' if self.proprio_pickers else ''})")
         parent = getattr(super(), "__post_init__", None)
         if parent is not None:
             parent()
@@ -275,6 +287,12 @@ class StudentConfig:
         data's actions are the executed ones; never with --proprio-pickers (they give the pickers outright)."""
         auto = self.picker_odometry == "auto" and self.data.action_labels == "executed"
         return (self.picker_odometry == "on" or auto) and not self.proprio_pickers
+
+    def resolved_hold_radius(self, task: str) -> float:
+        """``--hold-radius``, or unset the task's ``TaskDefaults.hold_radius``; 0 without the picker odometry."""
+        if not self.odometry:
+            return 0.0
+        return self.hold_radius if self.hold_radius is not None else task_defaults(task).hold_radius
 
     @property
     def expert_actions(self) -> bool:
@@ -304,10 +322,11 @@ class StudentConfig:
         """:func:`weight_copied_student` of ``teacher`` on ``encoder``'s estimates with these options: the
         teacher's weights (``--weight-copy``), its statistics standardising both the true ``"state"`` and the
         ``"state_estimate"`` (the encoder's estimates live in state units), :meth:`proprio_dims` and
-        :attr:`odometry`."""
+        :attr:`odometry` with :meth:`resolved_hold_radius`."""
         return weight_copied_student(teacher, encoder, weight_copy=self.weight_copy, device=device,
                                      normalizer_keys=("state", "state_estimate"),
-                                     proprio_dims=self.proprio_dims(teacher.task), picker_odometry=self.odometry)
+                                     proprio_dims=self.proprio_dims(teacher.task), picker_odometry=self.odometry,
+                                     hold_radius=self.resolved_hold_radius(teacher.task))
 
     def make_loss(self, student: nn.Module, teacher_actor: nn.Module, *, action_eps: float,
                   expert_coef: float = 0.0) -> nn.Module:
@@ -333,7 +352,8 @@ class StudentConfig:
         data, lengths, path = load_encoded_dataset(self.data, encoder, task=teacher.task, horizon=teacher.horizon,
                                                    seed=seed, keys=keys, log=log, progress=progress)
         if self.odometry:  # what the student reads when acting: the fused pickers
-            fuse = PickerOdometry.for_task(teacher.task, teacher.env_kwargs)
+            fuse = PickerOdometry.for_task(teacher.task, teacher.env_kwargs,
+                                           hold_radius=self.resolved_hold_radius(teacher.task))
             data.set("state_estimate", fuse.filter(data["state_estimate"], data["action"]))
         buffer.load_offline(data, lengths)
         log(f"{'--expert-data' if self.distill else '--no-distill'}: {data.shape[0]} expert episodes from {path}")
@@ -344,7 +364,8 @@ class StudentConfig:
         (DAgger's decaying mixture: :class:`DAggerRollouts`)."""
         if not (self.distill and self.episodes_per_round):
             return []
-        estimating = dataclasses.replace(teacher, encoder=encoder, picker_odometry=self.odometry)
+        estimating = dataclasses.replace(teacher, encoder=encoder, picker_odometry=self.odometry,
+                                         hold_radius=self.resolved_hold_radius(teacher.task))
         return {"teacher": [estimating], "student": [student], "mixed": [estimating, student]}[self.act]
 
 

@@ -93,3 +93,35 @@ def test_handle_save_writes_what_save_policy_writes(tmp_path):
 
 def same(x, y) -> bool:
     return torch.equal(x, y) if torch.is_tensor(x) else x == y
+
+
+def test_a_students_held_corner_is_saved_and_checked(tmp_path):
+    """hold_radius rides in the student's file with its picker odometry and reaches the acting env's PickerOdometry;
+    a value out of range, or one without the odometry, is refused naming the entry."""
+    from trakdis.envs import close_env
+
+    task = "ClothFoldDiagonalPinned"
+    enc = NormalizedEncoder(StateEncoder(15, channels=(4, 4, 4, 4), hidden_dim=8), torch.zeros(15), torch.ones(15))
+    save_encoder(tmp_path / "encoder.pt", enc, task=task)
+    _, data = load_encoder(tmp_path / "encoder.pt", task=task)
+    cfg, actor = tiny_actor("state_estimate")
+
+    def student(name, **extra):
+        return save_policy(tmp_path / name, kind="student", task=task, horizon=10, dt_config=cfg, actor=actor,
+                           observation_key="state_estimate", target_return=-1.0, rtg_scale=1.0, encoder_file=data,
+                           extra=extra)
+
+    handle = load_policy(student("held.pt", picker_odometry=True, hold_radius=0.03))
+    assert handle.hold_radius == 0.03
+    env = handle.make_env()
+    try:
+        (odometry,) = [t for t in env.transform if type(t).__name__ == "PickerOdometry"]
+        assert odometry.hold_radius == 0.03 and odometry.corner_starts == [0]
+    finally:
+        close_env(env)
+    assert load_policy(student("plain.pt", picker_odometry=True)).hold_radius == 0.0  # files written before it
+    for name, extra in (("neg.pt", dict(picker_odometry=True, hold_radius=-0.01)),
+                        ("text.pt", dict(picker_odometry=True, hold_radius="3 cm")),
+                        ("alone.pt", dict(picker_odometry=False, hold_radius=0.03))):
+        with pytest.raises(FileFormatError, match=f"{name}: 'hold_radius' must be a distance"):
+            load_policy(student(name, **extra))

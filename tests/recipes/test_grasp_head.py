@@ -33,7 +33,9 @@ def test_a_grasp_head_teacher_and_its_student(workdir, dataset, encoder):
     run_recipe(workdir, "distill", *args)
     student = load_policy(workdir / "runs" / "distill" / "grasp-student")
     assert find_dt_actor(student.actor).config.grasp_head
+    assert student.picker_odometry and student.hold_radius == 0.0  # ClothFold's default: no held corner
+    # --hold-radius: the saved student acting with the held corner (PickerOdometry), a grasp head's closes included
     run_recipe(workdir, "evaluate", "--name", "grasp-eval", "--policy", "runs/distill/grasp-student", "--trials", 2,
-               "--videos", 0, "--threads", 1)
+               "--videos", 0, "--threads", 1, "--hold-radius", 0.9)
     episodes = pd.read_csv(workdir / "runs" / "evaluate" / "grasp-eval" / "episodes.csv")
     assert len(episodes) == 2 and episodes["final_normalized_performance"].notna().all()

@@ -33,6 +33,7 @@ def test_the_measured_values():
     assert (cf.teacher_candidates, pinned.teacher_candidates, unpinned.teacher_candidates) == (1, 3, 3)
     assert (cf.close_radius, pinned.close_radius, unpinned.close_radius) == (0.01, None, None)
     assert (cf.grasp_head, pinned.grasp_head, unpinned.grasp_head) == (False, True, False)
+    assert (cf.hold_radius, pinned.hold_radius, unpinned.hold_radius) == (0.0, 0.03, 0.0)
 
 
 @pytest.mark.parametrize("task", TASKS)
@@ -42,6 +43,9 @@ def test_each_recipe_resolves_the_tables_default(task):
     cfg = parse_config(distill, ["--teacher", "t.pt", "--encoder", "e.pt", "--episodes-per-round", "0"])
     assert cfg.expert_actions and cfg.resolved_expert_coef(task) == defaults.expert_coef
     assert cfg.resolved_select_episodes(task) == defaults.select_episodes
+    assert cfg.odometry and cfg.resolved_hold_radius(task) == defaults.hold_radius
+    assert parse_config(distill, ["--hold-radius", "0.02"]).resolved_hold_radius(task) == 0.02
+    assert parse_config(distill, ["--picker-odometry", "off"]).resolved_hold_radius(task) == 0.0
     given = parse_config(distill, ["--teacher", "t.pt", "--encoder", "e.pt", "--expert-coef", "0.5",
                                    "--select-episodes", "7"])
     assert given.resolved_expert_coef(task) == 0.5 and given.resolved_select_episodes(task) == 7
@@ -119,3 +123,18 @@ def test_table1_loads_the_old_train_noise():
     old = {**saved, "train_noise": 0.001, "methods": ["expert", "teacher", "trakdis", "no_distill"]}
     assert config_from_dict(config, old).methods == ("expert", "teacher", "trakdis", "no_distill_copy")
     assert "no_distill" in config_from_dict(config, saved).methods  # a run saved since: the paper's arm
+
+
+def test_the_held_corner_needs_the_picker_odometry(capsys):
+    distill = load_recipe("distill").DistillConfig
+    for flags in (["--picker-odometry", "off"], ["--proprio-pickers"]):
+        with pytest.raises(SystemExit):
+            parse_config(distill, ["--hold-radius", "0.02", *flags])
+        assert "--hold-radius 0.02: the held corner is part of the picker odometry" in _message(capsys)
+    with pytest.raises(SystemExit):
+        parse_config(distill, ["--hold-radius", "-0.01"])
+    assert "--hold-radius -0.01: a distance in metres" in _message(capsys)
+
+
+def _message(capsys) -> str:  # tyro's error box, its lines joined
+    return " ".join(capsys.readouterr().err.replace("│", " ").split())

@@ -65,6 +65,44 @@ def test_views_of_a_picker_out_of_the_image_are_not_fused():
     assert torch.equal(fused, unseen) and count.item() == 1.0
 
 
+def test_a_close_near_the_source_corner_holds_its_estimate_at_the_picker_until_it_opens():
+    # one picker (dims 12-14), its source corner c00 (dims 0-2); 3 cm hold radius; no motion, every view fused
+    odometry = PickerOdometry([12], corner_starts=[0], hold_radius=0.03)
+    T = 7
+    est = torch.zeros(T, 15)
+    est[:, 12:] = torch.tensor([0.02, 0.0, 0.01])  # the picker, 2.2 cm from the corner at the origin
+    est[4:, :3] = torch.tensor([0.5, 0.5, 0.5])  # a far-off corner view from step 4 on (the lifted corner misread)
+    grasp = torch.tensor([-1.0, 1.0, 1.0, 1.0, 1.0, -1.0, 1.0])  # action t: open, closed x4, open, closed
+    action = torch.zeros(T, 4)
+    action[:, 3] = grasp
+    out = odometry.filter(est, action)
+    picker = torch.tensor([0.02, 0.0, 0.01])
+    # step t+1 holds when action t closes within reach of the corner in the estimate of step t
+    held = [False, False, True, True, True, True, False]
+    for t in range(T):
+        expected = picker if held[t] else est[t, :3]
+        torch.testing.assert_close(out[t, :3], expected, msg=f"step {t}")
+    # the hold carries over the misread views (steps 4, 5) while closed, then lets go: step 6 reads the view again
+    assert torch.equal(out[:, 12:], est[:, 12:])
+    far = est.clone()
+    far[:, :3] = torch.tensor([0.1, 0.0, 0.0])  # 8 cm away: a close holds nothing
+    torch.testing.assert_close(odometry.filter(far, action), far)
+    # off (the default): the estimates are the plain filter's
+    torch.testing.assert_close(PickerOdometry([12]).filter(est, action), est)
+
+
+def test_hold_radius_needs_its_corners_and_a_grasp_command():
+    with pytest.raises(ValueError, match="needs a grasp command .* corner_starts"):
+        PickerOdometry([12], hold_radius=0.03)
+    with pytest.raises(ValueError, match="needs a grasp command"):
+        PickerOdometry([12], corner_starts=[0], hold_radius=0.03, action_stride=3)
+    with pytest.raises(ValueError, match="hold_radius must be a finite distance"):
+        PickerOdometry([12], corner_starts=[0], hold_radius=float("nan"))
+    # the task's fold plan names each picker's source corner: c00 on the diagonal folds, c0N and cNN on ClothFold
+    assert PickerOdometry.for_task("ClothFoldDiagonalPinned", hold_radius=0.03).corner_starts == [0]
+    assert PickerOdometry.for_task("ClothFold", hold_radius=0.03).corner_starts == [3, 9]
+
+
 class _PixelMap(nn.Module):
     """A fixed linear map from a 32x32 image to an 18-dim 'estimate' (any deterministic encoder will do)."""
 
@@ -78,13 +116,14 @@ class _PixelMap(nn.Module):
         return self.proj(pixels.float().flatten(1) / 255.0)
 
 
-def _roll(picker_odometry: bool, actions):
+def _roll(picker_odometry: bool, actions, hold_radius: float = 0.0):
     from torchrl.envs.utils import step_mdp
 
     from trakdis.policies import make_acting_env
 
     env = make_acting_env("ClothFold", encoder=_PixelMap(), num_envs=2, seed=5, split="eval",
-                          picker_odometry=picker_odometry, env_kwargs={"horizon": actions.shape[0]})
+                          picker_odometry=picker_odometry, env_kwargs={"horizon": actions.shape[0]},
+                          hold_radius=hold_radius)
     try:
         td = env.reset()
         out = [td["state_estimate"]]
@@ -105,6 +144,13 @@ def test_env_transform_writes_what_the_offline_filter_computes():
     expected = PickerOdometry.for_task("ClothFold").filter(raw, actions.transpose(0, 1))
     torch.testing.assert_close(fused, expected, atol=1e-6, rtol=0)
     assert torch.equal(fused[..., :12], raw[..., :12]) and not torch.equal(fused[..., 12:], raw[..., 12:])
+    # with the held corner (a radius that holds on every close): the env writes what the filter computes, too
+    held, _ = _roll(True, actions, hold_radius=0.9)
+    expected = PickerOdometry.for_task("ClothFold", hold_radius=0.9).filter(raw, actions.transpose(0, 1))
+    torch.testing.assert_close(held, expected, atol=1e-6, rtol=0)
+    assert not torch.equal(held[..., :12], raw[..., :12])
+    with pytest.raises(ValueError, match="held corner is part of the picker odometry"):
+        _roll(False, actions, hold_radius=0.03)
 
 
 def test_partial_reset_keeps_the_running_envs_estimates():

@@ -40,6 +40,9 @@ class TaskDefaults:
             teacher trained on noisy states lifts the open picker while unsure whether to close and collapses
             on some seeds; on ClothFold and the unpinned fold it releases late and is not the default there;
             docs/recipes/online_dt.md).
+        hold_radius: the student's held-corner radius (recipes/distill.py's ``--hold-radius`` default, metres; 0:
+            off): on the pinned fold its students lifted the corner and opened again where the encoder read the
+            lifted corner still down; measured there alone (docs/recipes/distill.md).
         close_radius: the expert data's grasp-close radius (``--data.close-radius``) of every stage of the
             method, ``None`` for the data's default (a policy acting on blurred states closes about 1.5 cm
             farther out than its demonstrations, beyond ClothFold's reach from 2 cm; docs/recipes/pipeline.md).
@@ -52,13 +55,15 @@ class TaskDefaults:
     teacher_candidates: int
     close_radius: float | None = None
     grasp_head: bool = False
+    hold_radius: float = 0.0
 
 
 TASK_DEFAULTS = {
     "ClothFold": TaskDefaults(select_episodes=0, expert_coef=1.0, test_time_flip=True, hidden_grasp=True,
                               teacher_candidates=1, close_radius=0.01),
     "ClothFoldDiagonalPinned": TaskDefaults(select_episodes=30, expert_coef=0.0, test_time_flip=False,
-                                            hidden_grasp=False, teacher_candidates=3, grasp_head=True),
+                                            hidden_grasp=False, teacher_candidates=3, grasp_head=True,
+                                            hold_radius=0.03),
     "ClothFoldDiagonalUnpinned": TaskDefaults(select_episodes=30, expert_coef=0.0, test_time_flip=False,
                                               hidden_grasp=False, teacher_candidates=3),
 }

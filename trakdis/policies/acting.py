@@ -32,14 +32,15 @@ __all__ = ["make_acting_env", "PolicyHandle", "load_policy", "load_teacher"]
 def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale: float = 1.0,
                     encoder: nn.Module | None = None, state_noise: float = 0.0, noise_seed: int | None = None,
                     video_size: int | None = None, encoder_key: str = "state_estimate", picker_odometry: bool = False,
-                    **batched_kwargs):
+                    hold_radius: float = 0.0, **batched_kwargs):
     """A batched env with the acting transforms of a DT policy.
 
     ``encoder`` (student): ``EncoderTransform`` writes ``"state_estimate"`` from ``"pixels"``
     (pixels are switched on); ``state_noise`` adds Gaussian noise to ``"state_estimate"``
     (``"state"`` for a teacher); ``target_return`` adds the ``ReturnToGo`` countdown.
     ``picker_odometry`` (with an encoder): ``PickerOdometry`` fuses the estimate's pickers with the
-    actions sent, before the noise.
+    actions sent, before the noise; ``hold_radius`` > 0 (with it): a picker that closes that near its
+    source corner holds the corner's estimate at its own (``PickerOdometry``'s held corner).
     ``encoder_key``: where the encoder writes (an image baseline's trunk: ``"image_features"``;
     the state noise then goes there too).
 
@@ -62,9 +63,12 @@ def make_acting_env(task: str, *, target_return: float | None = None, rtg_scale:
         transforms.append(EncoderTransform(encoder, in_keys=[agent_key], out_keys=[encoder_key]))
         if picker_odometry:
             transforms.append(PickerOdometry.for_task(task, batched_kwargs.get("env_kwargs"), in_keys=[encoder_key],
-                                                      image_size=agent_size))
+                                                      image_size=agent_size, hold_radius=hold_radius))
     elif picker_odometry:
         raise ValueError("picker_odometry fuses an encoder's estimates: it needs an encoder")
+    if hold_radius and not (encoder is not None and picker_odometry):
+        raise ValueError(f"hold_radius {hold_radius}: the held corner is part of the picker odometry (picker_odometry "
+                         "with an encoder)")
     if state_noise > 0:
         key = encoder_key if encoder is not None else "state"
         transforms.append(StateNoise(state_noise, in_keys=[key], seed=noise_seed))
@@ -101,6 +105,9 @@ class PolicyHandle:
     """dims of the student's estimate taken from the true state (picker positions), if any"""
     picker_odometry: bool = False
     """the student's picker estimates fused with its own commands (``PickerOdometry`` in its env)"""
+    hold_radius: float = 0.0
+    """with ``picker_odometry``: a close this near (metres) to the source corner holds the corner's estimate at the
+    picker's (``PickerOdometry``'s held corner; 0: off)"""
 
     @property
     def uses_pixels(self) -> bool:
@@ -121,6 +128,7 @@ class PolicyHandle:
             from_pixels=bool(from_pixels) or self.uses_pixels, image_size=image_size,
             env_kwargs={**self.env_kwargs, "horizon": self.horizon}, video_size=video_size,
             picker_odometry=self.picker_odometry and self.encoder is not None,
+            hold_radius=self.hold_radius if self.picker_odometry and self.encoder is not None else 0.0,
             **({"encoder_key": self.observation_key} if self.kind in IMAGE_POLICY_KINDS else {}),
         )
 

@@ -54,8 +54,8 @@ __all__ = [
 POLICY_KEYS = frozenset({
     "format", "kind", "task", "horizon", "dt_config", "observation_key", "actor", "target_return", "rtg_scale",
     "env_kwargs", "encoder", "normalizer", "render_version", "bc_config", "trunk_config", "trunk",
-    "proprio_dims", "picker_odometry", "selected_round", "selection_scores", "teacher", "weight_copy", "distill",
-    "estimate_noise", "state_noise", "expert_coef", "select_episodes", "dataset", "epochs", "updates"})
+    "proprio_dims", "picker_odometry", "hold_radius", "selected_round", "selection_scores", "teacher", "weight_copy",
+    "distill", "estimate_noise", "state_noise", "expert_coef", "select_episodes", "dataset", "epochs", "updates"})
 """Entries a policy file may hold (``save_policy`` / ``save_image_policy`` and the recipes' extras; ``state_noise``:
 ``estimate_noise`` in the files distill.py wrote before the option was renamed)."""
 ENCODER_KEYS = frozenset({
@@ -270,6 +270,10 @@ def _policy_fields(data: Mapping[str, Any], path: Path) -> None:
         raise FileFormatError(f"{path}: 'proprio_dims' must be a list of state dims, got {dims!r}")
     if not isinstance(data.get("picker_odometry", False), bool):
         raise FileFormatError(f"{path}: 'picker_odometry' must be true or false, got {data['picker_odometry']!r}")
+    hold = data.get("hold_radius", 0.0)
+    if not (limits.is_number(hold) and 0 <= hold < 1) or (hold and not data.get("picker_odometry", False)):
+        raise FileFormatError(f"{path}: 'hold_radius' must be a distance in [0, 1) m, with picker_odometry true, "
+                              f"got {hold!r}")
     limits.check_env_kwargs(data.get("env_kwargs"), str(path), error=FileFormatError)
 
 
@@ -446,6 +450,7 @@ def _dt_policy_fields(path: Path, data: Mapping[str, Any], *, device: str, max_p
         rtg_scale=data["rtg_scale"], env_kwargs=dict(data.get("env_kwargs") or {}), source=str(path),
         normalizer=normalizer_from_state_dict(data["normalizer"]) if data.get("normalizer") else None,
         proprio_dims=tuple(data.get("proprio_dims") or ()), picker_odometry=bool(data.get("picker_odometry", False)),
+        hold_radius=float(data.get("hold_radius", 0.0)),
     )
 
 

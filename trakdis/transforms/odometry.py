@@ -21,6 +21,16 @@ and the policy's own commands is read: no proprioception.
   ``[..., T, D]`` estimates with the executed ``[..., T, A]`` actions (the student's distillation
   data, so that it trains on what it will read when acting).
 
+The held corner (``hold_radius`` > 0, with ``corner_starts``): a picker that closes (grasp command > 0)
+within ``hold_radius`` of its source corner, as the previous estimate shows them, takes a cloth vertex
+there (the env grasps the nearest vertex within its reach and pulls it to the picker's centre), so
+while it stays closed the corner's estimate is the picker's. The encoder is the weak witness here: a
+corner lifted a few centimetres looks from above almost as it did on the table, and a student that
+reads it still down opens again (docs/recipes/distill.md, "Why the pinned fold's student holds the
+corner it closed on").
+The rule needs no state of its own: a held corner's estimate is its picker's, so the next close is
+within reach again until the picker opens.
+
 Why not a TorchRL transform that exists (checked in 0.14): none integrates actions into an
 observation; ``TargetReturn`` (the model for keeping the running value in the observation spec)
 accumulates rewards only.
@@ -28,6 +38,7 @@ accumulates rewards only.
 from __future__ import annotations
 
 import inspect
+import math
 from typing import Mapping, Sequence
 
 import torch
@@ -38,6 +49,7 @@ from torchrl.envs.transforms import Transform
 
 from trakdis.envs import ClothEnv, task_spec
 from trakdis.envs.cloth_env import WORKSPACE_HIGH, WORKSPACE_LOW
+from trakdis.envs.experts import FOLD_PLAN
 from trakdis.transforms.visibility import OutOfViewFill, fixed_camera_matrix
 
 __all__ = ["PickerOdometry"]
@@ -59,13 +71,18 @@ class PickerOdometry(Transform):
         camera_matrix, image_size: the camera whose image the encoder reads; a view is fused only
             when the predicted picker projects into it (``None``: every view is fused).
         count_key: the observation entry holding the number of views fused per picker.
+        corner_starts: the state dims where each picker's source corner's xyz starts (the held corner;
+            ``None``: no corner is held).
+        hold_radius: a close within this distance (metres) of the source corner, as estimated, holds it:
+            its estimate is then the picker's while the picker stays closed (0: off).
     """
 
     def __init__(self, starts: Sequence[int], *, in_keys: Sequence[NestedKey] | None = None,
                  action_key: NestedKey = "action", action_stride: int = 4, move_per_substep: float = 0.0075,
                  action_repeat: int = 8, low: Sequence[float] = (-0.4, -0.4, 0.0),
                  high: Sequence[float] = (0.4, 0.4, 0.3), camera_matrix=None, image_size: int = 32,
-                 count_key: NestedKey = "picker_odometry_count"):
+                 count_key: NestedKey = "picker_odometry_count", corner_starts: Sequence[int] | None = None,
+                 hold_radius: float = 0.0):
         in_keys = ["state_estimate"] if in_keys is None else list(in_keys)
         if len(in_keys) != 1:
             raise ValueError(f"PickerOdometry: one estimate key (one count_key goes with it), got in_keys {in_keys}")
@@ -86,20 +103,33 @@ class PickerOdometry(Transform):
         self.view = None if camera_matrix is None else OutOfViewFill(
             camera_matrix, image_size, starts=[3 * i for i in range(len(self.starts))])
         self._index = torch.tensor([[s, s + 1, s + 2] for s in self.starts])
+        if not (hold_radius >= 0 and math.isfinite(hold_radius)):
+            raise ValueError(f"PickerOdometry: hold_radius must be a finite distance >= 0, got {hold_radius}")
+        self.hold_radius = float(hold_radius)
+        if self.hold_radius > 0 and (self.action_stride < 4 or corner_starts is None
+                                     or len(corner_starts) != len(self.starts) or min(corner_starts) < 0):
+            raise ValueError(f"PickerOdometry: hold_radius {hold_radius} needs a grasp command (action_stride >= 4, "
+                             f"got {self.action_stride}) and corner_starts, one >= 0 state dim per picker "
+                             f"({len(self.starts)}), got {corner_starts}")
+        self.corner_starts = None if corner_starts is None else [int(c) for c in corner_starts]
+        self._corner_index = None if corner_starts is None else torch.tensor([[c, c + 1, c + 2]
+                                                                              for c in self.corner_starts])
 
     @classmethod
     def for_task(cls, task: str, env_kwargs: Mapping | None = None, *, image_size: int = 32,
-                 in_keys: Sequence[NestedKey] | None = None) -> "PickerOdometry":
+                 in_keys: Sequence[NestedKey] | None = None, hold_radius: float = 0.0) -> "PickerOdometry":
         """The filter of ``task``'s pickers, with the motion of an env made with ``env_kwargs``
         (``move_per_substep``, ``action_repeat``; the env's defaults otherwise) and the task's fixed
-        camera at ``image_size``."""
+        camera at ``image_size``; ``hold_radius``: each picker holds its source corner of the task's
+        fold plan (``trakdis.envs.experts.FOLD_PLAN``) as the class docstring says."""
         spec, kwargs = task_spec(task), dict(env_kwargs or {})
         defaults = inspect.signature(ClothEnv.__init__).parameters
         motion = {k: kwargs.get(k, defaults[k].default) for k in ("move_per_substep", "action_repeat")}
         pickers = spec.state_groups["pickers"]
         return cls(list(range(pickers.start, pickers.stop, 3)), in_keys=in_keys, action_stride=spec.action_dim // spec.num_pickers,
                    low=WORKSPACE_LOW.tolist(), high=WORKSPACE_HIGH.tolist(),
-                   camera_matrix=fixed_camera_matrix(task, image_size), image_size=image_size, **motion)
+                   camera_matrix=fixed_camera_matrix(task, image_size), image_size=image_size,
+                   corner_starts=[3 * source for source, _ in FOLD_PLAN[task]], hold_radius=hold_radius, **motion)
 
     # ------------------------------------------------------------------ the filter
     def _pickers(self, x: torch.Tensor) -> torch.Tensor:
@@ -133,9 +163,22 @@ class PickerOdometry(Transform):
         gain = seen.to(pred.dtype) / (count.to(pred.dtype) + 1.0)
         return pred + gain.unsqueeze(-1) * (observed.to(pred.dtype) - pred), count + seen.to(count.dtype)
 
-    def _write(self, estimate: torch.Tensor, pickers: torch.Tensor) -> torch.Tensor:
+    def holds(self, previous: torch.Tensor, action: torch.Tensor) -> torch.Tensor | None:
+        """Which pickers ``[..., P]`` hold their source corner after ``action`` ``[..., A]``: those
+        it closes within ``hold_radius`` of the corner in the ``previous`` estimate ``[..., D]``
+        (``None`` with the hold off)."""
+        if self.hold_radius <= 0:
+            return None
+        grasp = action.reshape(*action.shape[:-1], len(self.starts), self.action_stride)[..., -1]
+        corners = previous[..., self._corner_index.to(previous.device)]
+        return (grasp > 0) & ((self._pickers(previous) - corners).norm(dim=-1) <= self.hold_radius)
+
+    def _write(self, estimate: torch.Tensor, pickers: torch.Tensor, held: torch.Tensor | None = None) -> torch.Tensor:
         out = estimate.clone()
         out[..., self._index.flatten().to(out.device)] = pickers.flatten(-2).to(out.dtype)
+        if held is not None:  # a held corner's estimate is its picker's
+            index = self._corner_index.to(out.device)
+            out[..., index] = torch.where(held.unsqueeze(-1), pickers.to(out.dtype), out[..., index])
         return out
 
     def filter(self, estimate: torch.Tensor, action: torch.Tensor, time_dim: int = -2) -> torch.Tensor:
@@ -148,11 +191,12 @@ class PickerOdometry(Transform):
                              "differ in their batch or time dims")
         observed = self._pickers(est.float())  # [..., T, P, 3]
         pickers, count = observed[..., 0, :, :], torch.ones(observed.shape[:-3] + observed.shape[-2:-1])
-        fused = [pickers]
+        written = [self._write(est[..., 0, :], pickers)]
         for t in range(1, est.shape[-2]):
             pickers, count = self.fuse(pickers, count, act[..., t - 1, :].float(), observed[..., t, :, :])
-            fused.append(pickers)
-        return self._write(est, torch.stack(fused, -3)).movedim(-2, time_dim)
+            # the hold reads the previous step's written estimate, as in an env
+            written.append(self._write(est[..., t, :], pickers, self.holds(written[-1], act[..., t - 1, :])))
+        return torch.stack(written, -2).movedim(-2, time_dim)
 
     # ------------------------------------------------------------------ TorchRL Transform
     def _reset(self, tensordict: TensorDictBase | None, tensordict_reset: TensorDictBase) -> TensorDictBase:
@@ -181,7 +225,7 @@ class PickerOdometry(Transform):
                            "was the env reset through this TransformedEnv?")
         observed = next_tensordict.get(key)
         pickers, count = self.fuse(self._pickers(previous.float()), count, action.float(), self._pickers(observed))
-        next_tensordict.set(key, self._write(observed, pickers))
+        next_tensordict.set(key, self._write(observed, pickers, self.holds(previous, action)))
         next_tensordict.set(self.count_key, count)
         return next_tensordict
 
@@ -200,4 +244,5 @@ class PickerOdometry(Transform):
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(starts={self.starts}, in_keys={self.in_keys}, action_repeat={self.action_repeat}, "
-                f"move_per_substep={self.move_per_substep}, view={'image' if self.view is not None else 'none'})")
+                f"move_per_substep={self.move_per_substep}, view={'image' if self.view is not None else 'none'}, "
+                f"hold_radius={self.hold_radius})")
