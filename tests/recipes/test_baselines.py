@@ -390,3 +390,25 @@ def test_table1_help_and_quick_preset(capsys):
     with pytest.raises(SystemExit) as exc:
         bench.main(["--help"])
     assert exc.value.code == 0 and "--seeds" in capsys.readouterr().out
+
+
+def test_mirror_symmetry_tells_a_symmetric_task_from_one_that_folds_one_corner():
+    """benchmarks/mirror_symmetry.py: states together with their mirror images are symmetric (the mean state is its
+    own mirror, the travels swap); a fold that moves c00 alone is not (its mean and mirrored mean part at c00, cN0)."""
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "mirror_symmetry.py"
+    spec = importlib.util.spec_from_file_location("_benchmark_mirror_symmetry", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    from trakdis.envs import task_spec
+    from trakdis.transforms import mirror_state
+
+    mirror = task_spec("ClothFoldDiagonalPinned").state_mirror
+    g = torch.Generator().manual_seed(0)
+    states = torch.randn(6, 20, 15, generator=g, dtype=torch.float64) * 0.01
+    states[:, :, 0] += torch.linspace(0, 0.3, 20, dtype=torch.float64)  # c00 carried 30 cm along x
+    one_sided = module.mirror_gap(states, mirror)
+    assert one_sided["travel"][0] > 25 and one_sided["travel_mirrored"][2] == pytest.approx(one_sided["travel"][0])
+    assert min(one_sided["mean_gap"][0], one_sided["mean_gap"][2]) > 10 and one_sided["mean_gap"][1] < 3
+    both = module.mirror_gap(torch.cat([states, mirror_state(states, *mirror)]), mirror)
+    assert max(both["mean_gap"]) < 1e-9
+    assert both["travel"] == pytest.approx([both["travel_mirrored"][i] for i in (2, 3, 0, 1)])
