@@ -91,8 +91,8 @@ class EvaluateConfig(RunConfig):
                              f"noise level 0 only (got {list(self.noise_levels)})")
         if self.horizon is not None:
             check_option("horizon", self.horizon, le=MAX_HORIZON, integer=True)
-        if self.hold_radius is not None and not 0 <= self.hold_radius < 1:  # also NaN
-            raise ValueError(f"--hold-radius {self.hold_radius}: a distance in metres, in [0, 1)")
+        if self.hold_radius is not None:
+            check_option("hold_radius", self.hold_radius, ge=0, lt=1)
         super().__post_init__()
 
 

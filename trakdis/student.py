@@ -37,7 +37,7 @@ from trakdis.transforms import PickerOdometry
 from trakdis.transforms.normalization import normalizer_parts, normalizer_with_keys
 from trakdis.transforms.visibility import OutOfViewFill
 from trakdis.utils import limits
-from trakdis.utils.limits import check_options
+from trakdis.utils.limits import check_option, check_options
 from trakdis.utils.logger import latest_run_file
 from trakdis.utils.run import Run, RunState
 
@@ -271,8 +271,8 @@ class StudentConfig:
             raise ValueError(f"--picker-odometry integrates the executed actions: --data.action-labels "
                              f"{self.data.action_labels!r} needs 'executed'")
         check_options(self, nonnegative=("estimate_noise", "kl_coef"))
-        if self.hold_radius is not None and not 0 <= self.hold_radius < 1:  # also NaN
-            raise ValueError(f"--hold-radius {self.hold_radius}: a distance in metres, in [0, 1)")
+        if self.hold_radius is not None:
+            check_option("hold_radius", self.hold_radius, ge=0, lt=1)
         if self.hold_radius and not self.odometry:
             raise ValueError(f"--hold-radius {self.hold_radius}: the held corner is part of the picker odometry, "
                              f"which is off here (--picker-odometry {self.picker_odometry}"

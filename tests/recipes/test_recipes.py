@@ -512,7 +512,7 @@ def test_model_section_is_the_dt_config_and_old_run_configs_load():
     ("evaluate", ["--task", "ClothFold", "--noise-levels", "-1"], r"--noise-levels -1\.0: every noise level must be a finite std >= 0"),
     ("evaluate", ["--task", "ClothFold", "--noise-levels", "0", "nan"], r"--noise-levels nan"),
     ("evaluate", ["--task", "ClothFold", "--horizon", "0"], r"--horizon 0"),
-    ("evaluate", ["--task", "ClothFold", "--hold-radius", "-0.1"], r"--hold-radius -0\.1: a distance in metres"),
+    ("evaluate", ["--task", "ClothFold", "--hold-radius", "-0.1"], r"--hold-radius must be a finite number >= 0 and < 1, got -0\.1"),
     ("distill", ["--hold-radius", "0.02", "--picker-odometry", "off"], r"held corner is part of the picker odometry"),
     ("online_dt", ["--horizon", "0"], r"--horizon 0"),
     ("online_dt", ["--expert-episodes", "-1"], r"--expert-episodes -1: must be >= 0"),

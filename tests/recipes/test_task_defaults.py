@@ -133,7 +133,7 @@ def test_the_held_corner_needs_the_picker_odometry(capsys):
         assert "--hold-radius 0.02: the held corner is part of the picker odometry" in _message(capsys)
     with pytest.raises(SystemExit):
         parse_config(distill, ["--hold-radius", "-0.01"])
-    assert "--hold-radius -0.01: a distance in metres" in _message(capsys)
+    assert "--hold-radius must be a finite number >= 0 and < 1, got -0.01" in _message(capsys)
 
 
 def _message(capsys) -> str:  # tyro's error box, its lines joined
