@@ -119,6 +119,7 @@ class PolicyHandle:
                  target_return: float | None = None, video_size: int | None = None):
         """The acting env of this policy (pixels on for a student, or when ``from_pixels``)."""
         is_dt = self.kind not in ("expert", "bc_image")
+        odometry = self.picker_odometry and self.encoder is not None
         return make_acting_env(
             self.task,
             target_return=(self.target_return if target_return is None else target_return) if is_dt else None,
@@ -127,8 +128,7 @@ class PolicyHandle:
             num_envs=num_envs, parallel=parallel, seed=seed, split=split,
             from_pixels=bool(from_pixels) or self.uses_pixels, image_size=image_size,
             env_kwargs={**self.env_kwargs, "horizon": self.horizon}, video_size=video_size,
-            picker_odometry=self.picker_odometry and self.encoder is not None,
-            hold_radius=self.hold_radius if self.picker_odometry and self.encoder is not None else 0.0,
+            picker_odometry=odometry, hold_radius=self.hold_radius if odometry else 0.0,
             **({"encoder_key": self.observation_key} if self.kind in IMAGE_POLICY_KINDS else {}),
         )
 
